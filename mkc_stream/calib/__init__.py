@@ -1,0 +1,1 @@
+"""Magnetometer (and later accelerometer/gyroscope) calibrators, quality metrics and gates."""

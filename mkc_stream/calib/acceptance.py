@@ -1,0 +1,46 @@
+"""One readable acceptance predicate for a magnetometer calibration (trial vs accepted).
+
+Like the embedded peers' fit-acceptable gates: a calibration is used only when every criterion
+holds, and a rejection names each criterion that failed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Earth's field is 22-67 uT at the surface; wider bounds leave room for local anomalies.
+EARTH_FIELD_UT = (15.0, 100.0)
+
+
+@dataclass(frozen=True)
+class AcceptanceRules:
+    min_coverage: float = 0.5              # of the 72 equal-area direction cells
+    max_condition: float = 1e6             # of the equilibrated weighted normal matrix
+    max_outlier_fraction: float = 0.4      # a disturbance-dominated window is not a calibration
+    max_residual_rel: float = 0.05         # inlier |m_cal| - F rms, relative to F
+    field_range_ut: tuple = EARTH_FIELD_UT # checked only when the unit is known to be uT
+
+
+def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules()):
+    """Return (accepted, reason); reason is '' when accepted, else every failed criterion."""
+    fails = []
+    cov = quality.get("coverage", 0.0)
+    if not cov >= rules.min_coverage:
+        fails.append(f"sphere coverage {cov:.0%} < {rules.min_coverage:.0%}: rotate the sensor through more orientations")
+    cond = quality.get("condition", np.inf)
+    if not cond <= rules.max_condition:
+        fails.append(f"condition number {cond:.3g} > {rules.max_condition:.3g}")
+    out = quality.get("outlier_fraction", 1.0)
+    if not out <= rules.max_outlier_fraction:
+        fails.append(f"outlier fraction {out:.0%} > {rules.max_outlier_fraction:.0%}: too much disturbance")
+    rel = quality.get("residual_rms", np.inf) / field if field > 0 else np.inf
+    if not rel <= rules.max_residual_rel:
+        fails.append(f"fit error {rel:.1%} of the field > {rules.max_residual_rel:.0%}")
+    if unit.lower() in ("ut", "microtesla", "µt"):
+        lo, hi = rules.field_range_ut
+        if not lo <= field <= hi:
+            fails.append(f"fitted field {field:.1f} uT outside the physical range [{lo:g}, {hi:g}] uT")
+    elif not (np.isfinite(field) and field > 0):
+        fails.append(f"fitted field {field} is not a positive number")
+    return (not fails), "; ".join(fails)

@@ -1,0 +1,174 @@
+"""The ellipsoid (magnetometer) model of the MKC paper's appendix, eqs. (36)-(41), and its
+conversion to the calibration convention of the recording spec: m_cal = S (m_raw - b),
+S symmetric positive definite, |m_cal| ~ F.
+
+Conditioning: raw magnetometer counts of +-500..6000 make the 9 quadratic features span
+~8 orders of magnitude. We fit in normalised coordinates m' = (m - c0) / s0 (c0 the
+per-axis median, s0 the median distance to it), where every feature is O(1), and map back
+exactly: if (m' - r0')^T M' (m' - r0') = 1, then b = c0 + s0 r0' and M = M' / s0^2.
+Normalising also keeps the origin inside the ellipsoid, which the "= 1" form of eq. (36)
+requires (an ellipsoid through the origin has no such form).
+
+S is taken as F * M^(1/2) with the symmetric square root built from eigh: Q diag(sqrt l) Q^T
+is the same matrix whatever sign or order eigh gives its eigenvectors, so S can be neither
+mirrored nor rotated (the defect of building S from Q alone). det(S) = 1 and F = det(M)^(-1/6)
+is the geometric-mean radius, so S only reshapes and F carries the field strength.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._validation import MKCInputError
+
+#: Fewest samples for which a 9-parameter fit is even determined; real fits want hundreds.
+MIN_SAMPLES = 10
+
+
+class EllipsoidError(MKCInputError):
+    """The data cannot give an ellipsoid (too few points, planar or linear data, indefinite fit)."""
+
+
+def design_matrix(mag: np.ndarray) -> np.ndarray:
+    """X_ell,k = [x^2, y^2, z^2, xy, xz, yz, x, y, z] for every row of mag (N, 3), eq. (36)-(37)."""
+    x, y, z = mag[:, 0], mag[:, 1], mag[:, 2]
+    return np.stack([x * x, y * y, z * z, x * y, x * z, y * z, x, y, z], axis=1)
+
+
+def quadric_from_theta(theta: np.ndarray):
+    """A (3x3 symmetric) and B (3) of a1 x^2 + ... + a9 z = 1 (the matrices under eq. (37))."""
+    a = np.asarray(theta, dtype=np.float64)
+    A = np.array([[a[0], a[3] / 2, a[4] / 2],
+                  [a[3] / 2, a[1], a[5] / 2],
+                  [a[4] / 2, a[5] / 2, a[2]]])
+    B = a[6:9].copy()
+    return A, B
+
+
+@dataclass(frozen=True)
+class EllipsoidGeometry:
+    centre: np.ndarray        # r0 of eq. (38)
+    M: np.ndarray             # shape matrix: (m - r0)^T M (m - r0) = 1  (the paper's A_1)
+    semi_axes: np.ndarray     # Sigma^(-1/2) of eq. (39), ascending eigenvalue order of M
+    rotation: np.ndarray      # Q of eq. (39)-(40), a proper rotation (det +1)
+
+    def surface(self, n_theta=24, n_phi=48):
+        """Points on the ellipsoid via the parametrisation (40)-(41): r = r0 + Q Sigma^(-1/2) p."""
+        th = np.linspace(-np.pi / 2, np.pi / 2, n_theta)
+        ph = np.linspace(0, 2 * np.pi, n_phi)
+        T, P = np.meshgrid(th, ph, indexing="ij")
+        p = np.stack([np.cos(T) * np.cos(P), np.cos(T) * np.sin(P), np.sin(T)], axis=-1)
+        return self.centre + (p * self.semi_axes) @ self.rotation.T
+
+
+def geometry_from_theta(theta: np.ndarray) -> EllipsoidGeometry:
+    """Centre (38), shape matrix A_1 = A / (1 + r0^T A r0), semi-axes and rotation (39)."""
+    A, B = quadric_from_theta(theta)
+    if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
+        raise EllipsoidError("ellipsoid parameters are not finite")
+    eigA = np.linalg.eigvalsh(A)
+    if eigA[0] * eigA[-1] <= 0:
+        raise EllipsoidError(
+            f"the fitted quadric is not an ellipsoid: A is indefinite or singular (eigenvalues {eigA.tolist()}); "
+            "the data do not cover enough orientations, or the disturbances dominate")
+    r0 = -0.5 * np.linalg.solve(A, B)
+    k = 1.0 + r0 @ A @ r0
+    M = A / k
+    lam, Q = np.linalg.eigh(M)
+    if not lam[0] > 0:
+        raise EllipsoidError(f"the fitted quadric is an empty or imaginary ellipsoid (1 + r0'A r0 = {k:.3g})")
+    if np.linalg.det(Q) < 0:       # a proper rotation for (40); M itself does not depend on this
+        Q[:, 0] = -Q[:, 0]
+    return EllipsoidGeometry(centre=r0, M=0.5 * (M + M.T), semi_axes=1.0 / np.sqrt(lam), rotation=Q)
+
+
+def calibration_from_geometry(geom: EllipsoidGeometry):
+    """(b, S, F) with m_cal = S (m - b), S symmetric positive definite with det(S) = 1."""
+    lam, Q = np.linalg.eigh(geom.M)
+    F = float(np.prod(lam) ** (-1.0 / 6.0))
+    S = F * (Q * np.sqrt(lam)) @ Q.T
+    S = 0.5 * (S + S.T)
+    return geom.centre.copy(), S, F
+
+
+def check_geometry_of_samples(mag: np.ndarray) -> None:
+    """Refuse samples that cannot determine an ellipsoid, with the reason."""
+    N = mag.shape[0]
+    if N < MIN_SAMPLES:
+        raise EllipsoidError(f"too few samples for an ellipsoid fit: {N} < {MIN_SAMPLES} (hundreds recommended)")
+    C = mag - np.median(mag, axis=0)
+    sv = np.linalg.svd(C, compute_uv=False)
+    if sv[0] == 0:
+        raise EllipsoidError("all samples are identical: the sensor never moved")
+    if sv[2] < 1e-3 * sv[0]:
+        kind = "a line" if sv[1] < 1e-3 * sv[0] else "a plane"
+        raise EllipsoidError(
+            f"the samples lie on {kind} (singular values {np.round(sv, 6).tolist()}): rotate the sensor "
+            "through all three axes, not about one axis only")
+
+
+@dataclass
+class Normalisation:
+    offset: np.ndarray
+    scale: float
+
+    def apply(self, mag):
+        return (mag - self.offset) / self.scale
+
+
+def normalisation_for(mag: np.ndarray) -> Normalisation:
+    c0 = np.median(mag, axis=0)
+    s0 = float(np.median(np.linalg.norm(mag - c0, axis=1)))
+    if not s0 > 0:
+        raise EllipsoidError("samples have no spread around their median")
+    return Normalisation(c0, s0)
+
+
+def raw_geometry(geom_n: EllipsoidGeometry, norm: Normalisation) -> EllipsoidGeometry:
+    """Map a geometry fitted in normalised coordinates back to raw sensor units."""
+    return EllipsoidGeometry(centre=norm.offset + norm.scale * geom_n.centre, M=geom_n.M / norm.scale ** 2,
+                             semi_axes=geom_n.semi_axes * norm.scale, rotation=geom_n.rotation)
+
+
+@dataclass
+class EllipsoidFit:
+    """Result of fit_ellipsoid. apply(raw) gives calibrated samples m_cal = S (m - b)."""
+
+    hard_iron: np.ndarray
+    soft_iron: np.ndarray
+    field: float
+    weights: np.ndarray
+    quality: dict
+    method: str
+    geometry: EllipsoidGeometry
+    theta_normalised: np.ndarray
+    normalisation: Normalisation
+    channels: list = field(default_factory=list)     # [{"sigma": s, "d": d}] for MKC methods
+    estimator: object = None
+
+    def apply(self, raw):
+        raw = np.asarray(raw, dtype=np.float64)
+        return (raw - self.hard_iron) @ self.soft_iron.T
+
+    def to_json(self, counts=None, status="accepted", reason=None):
+        """The `calibrate` object of spec/machine-output.md."""
+        out = {
+            "hard_iron": [float(v) for v in self.hard_iron],
+            "soft_iron": [[float(v) for v in row] for row in self.soft_iron],
+            "field": float(self.field),
+            "channels": [{"sigma": _num(c.get("sigma")), "d": _num(c.get("d"))} for c in self.channels],
+            "quality": {k: _num(v) for k, v in self.quality.items()},
+            "status": status,
+            "reason": reason,
+            "counts": counts,
+            "method": self.method,
+        }
+        return out
+
+
+def _num(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None

@@ -1,0 +1,93 @@
+"""fit_ellipsoid: a batch magnetometer calibration with any of the package's regressors."""
+from __future__ import annotations
+
+import numpy as np
+
+from .._validation import MKCInputError
+from .ellipsoid import (EllipsoidFit, calibration_from_geometry, check_geometry_of_samples, design_matrix,
+                        geometry_from_theta, normalisation_for, raw_geometry)
+from .quality import quality_figures
+
+#: Fixed bandwidth of method "mkc" (the paper's MKC column): weights exp(-e^2/(8 d^2)) halve at ~2.4 d.
+MKC_FIXED_SIGMA = 2.0
+
+CORE_METHODS = ("mkc-em", "mkc", "ls")
+
+
+def available_methods():
+    from ..baselines import BASELINES
+
+    return list(CORE_METHODS) + sorted(BASELINES)
+
+
+def make_estimator(method: str, **params):
+    """Estimator for a method name; params go to its constructor."""
+    from ..batch import MKCRegressor, WLSRegressor
+
+    key = method.lower()
+    if key in ("mkc-em", "mkcem", "em"):
+        return MKCRegressor(em=True, **params)
+    if key == "mkc":
+        params.setdefault("sigma", MKC_FIXED_SIGMA)
+        return MKCRegressor(em=False, **params)
+    if key in ("ls", "wls", "lsq"):
+        return WLSRegressor(**params)
+    from ..baselines import BASELINES
+
+    if key in BASELINES:
+        return BASELINES[key](**params)
+    raise MKCInputError(f"unknown method {method!r}; choose one of {', '.join(available_methods())}")
+
+
+def _sample_weights(est, N):
+    w = getattr(est, "weights_", None)
+    if w is None and getattr(est, "inlier_mask_", None) is not None:
+        w = np.asarray(est.inlier_mask_, dtype=np.float64)
+    if w is None:
+        return np.ones(N)
+    w = np.asarray(w, dtype=np.float64).reshape(N, -1)[:, 0]
+    return w
+
+
+def weighted_condition(X: np.ndarray, w: np.ndarray) -> float:
+    """cond of the Jacobi-equilibrated weighted normal matrix sum_k w_k x_k x_k^T."""
+    Xw = X * np.sqrt(np.maximum(w, 0.0))[:, None]
+    G = Xw.T @ Xw
+    dg = np.sqrt(np.diag(G))
+    if np.any(dg == 0):
+        return float("inf")
+    return float(np.linalg.cond(G / np.outer(dg, dg)))
+
+
+def fit_ellipsoid(mag, method: str = "mkc-em", *, estimator=None, **params) -> EllipsoidFit:
+    """Fit the ellipsoid model (appendix, eqs. (36)-(40)) to raw magnetometer samples (N, 3).
+
+    method: "mkc-em" (default), "mkc" (fixed sigma), "ls", or a baseline name (see
+    available_methods()); or pass a ready estimator with fit/coef_. Returns hard iron b, soft
+    iron S (symmetric positive definite), field F, per-sample weights and quality figures.
+    Raises EllipsoidError when the data cannot give an ellipsoid, with the reason.
+    """
+    mag = np.asarray(mag, dtype=np.float64)
+    if mag.ndim != 2 or mag.shape[1] != 3:
+        raise MKCInputError(f"mag must have shape (N, 3); got {mag.shape}")
+    bad = ~np.isfinite(mag).all(axis=1)
+    if bad.any():
+        raise MKCInputError(f"{int(bad.sum())} sample(s) contain NaN or inf (first at row {int(np.flatnonzero(bad)[0])})")
+    check_geometry_of_samples(mag)
+    norm = normalisation_for(mag)
+    X = design_matrix(norm.apply(mag))
+    y = np.ones(mag.shape[0])
+    est = estimator if estimator is not None else make_estimator(method, **params)
+    est.fit(X, y)
+    theta = np.asarray(est.coef_, dtype=np.float64)
+    geom = raw_geometry(geometry_from_theta(theta), norm)
+    b, S, F = calibration_from_geometry(geom)
+    w = _sample_weights(est, mag.shape[0])
+    m_cal = (mag - b) @ S.T
+    quality = quality_figures(m_cal, F, weighted_condition(X, w))
+    channels = []
+    if hasattr(est, "sigma_") and hasattr(est, "d_"):
+        channels = [{"sigma": float(s), "d": float(d)} for s, d in zip(np.atleast_1d(est.sigma_), np.atleast_1d(est.d_))]
+    name = method if estimator is None else type(estimator).__name__
+    return EllipsoidFit(hard_iron=b, soft_iron=S, field=F, weights=w, quality=quality, method=name,
+                        geometry=geom, theta_normalised=theta, normalisation=norm, channels=channels, estimator=est)

@@ -1,0 +1,51 @@
+"""Correntropy weights and the MKC loss, eqs. (9)/(13) and (14)-(15) of the MKC paper."""
+import math
+
+from .._numba import kernel
+
+
+@kernel
+def residuals(X, Y, theta, R):
+    """R[k, i] = y_k(i) - x_{k,i} theta   (e_k of eq. (3))."""
+    N, m, n = X.shape
+    for k in range(N):
+        for i in range(m):
+            s = Y[k, i]
+            for j in range(n):
+                s -= X[k, i, j] * theta[j]
+            R[k, i] = s
+
+
+@kernel
+def kernel_weights(R, sigma, d, W):
+    """W[k, i] = G_sigma_i(e_k(i)/d_i) = exp(-e^2 / (2 d_i^2 sigma_i^2))  (the W_k of eq. (14)).
+
+    sigma_i = inf gives weight 1 (the WLS limit of Theorem 1).
+    """
+    N, m = R.shape
+    for i in range(m):
+        c = 1.0 / (2.0 * d[i] * d[i] * sigma[i] * sigma[i])
+        for k in range(N):
+            W[k, i] = math.exp(-R[k, i] * R[k, i] * c)
+
+
+@kernel
+def mkc_loss(R, sigma, d):
+    """J_CL = sum_i sigma_i^2 (1 - (1/N) sum_k G_sigma_i(e_k(i)/d_i)),  eq. (9)/(13).
+
+    Written with -expm1 so that the sigma -> inf limit (Theorem 1: J_CL -> J_WLS, eq. (12)) is
+    reached without cancellation; sigma = inf returns J_WLS exactly.
+    """
+    N, m = R.shape
+    J = 0.0
+    for i in range(m):
+        acc = 0.0
+        for k in range(N):
+            e = R[k, i] / d[i]
+            if math.isinf(sigma[i]):
+                acc += 0.5 * e * e
+            else:
+                s2 = sigma[i] * sigma[i]
+                acc += s2 * (-math.expm1(-e * e / (2.0 * s2)))
+        J += acc / N
+    return J

@@ -1,0 +1,143 @@
+"""E-step: per-channel maximum likelihood of (sigma_i, d_i), eqs. (29)-(31), Algorithm 2.
+
+Objective (per channel, divided by N so its scale does not depend on N), with the paper's
+"log(c_i - d_i)" read as log(c_i / d_i) = -log(d_i Z):
+
+    F(sigma, d) = log d + log Z(sigma, a/d) + (sigma^2 / N) sum_k (1 - exp(-e_k^2 / (2 d^2 sigma^2)))
+
+minimised over z = (log sigma, log d) inside a box (so sigma can never collapse to 0 or d to a
+spike) by a projected BFGS (the paper's Algorithm 2 uses BFGS) with Armijo backtracking, an
+active-set rule at the bounds, analytic gradients, a bounded iteration count and a warm start.
+A non-finite value is treated as a failed trial step, so NaN never enters the state.
+"""
+import math
+
+from .._numba import kernel
+from . import OK, NOT_CONVERGED, NONFINITE, BAD_INPUT
+from .normaliser import log_normaliser_grad
+
+
+@kernel
+def _omh_minus_qh(q):
+    # (1 - e^-q) - q e^-q without cancellation for small q (series q^2/2 - q^3/3 + q^4/8).
+    if q < 1e-3:
+        return q * q * (0.5 - q * (1.0 / 3.0 - q * 0.125))
+    return -math.expm1(-q) - q * math.exp(-q)
+
+
+@kernel
+def estep_objective(ls, ld, e, n, a):
+    """F and its gradient in (log sigma, log d) for residuals e[:n] on the truncation [-a, a]."""
+    sigma = math.exp(ls)
+    d = math.exp(ld)
+    s2 = sigma * sigma
+    logZ, dZs, dZA = log_normaliser_grad(sigma, a / d)
+    inv = 1.0 / (2.0 * d * d * s2)
+    acc = 0.0
+    acc_s = 0.0
+    acc_d = 0.0
+    for k in range(n):
+        e2 = e[k] * e[k]
+        q = e2 * inv
+        acc += -math.expm1(-q)
+        # d/dsigma [sigma^2 (1-h)] = 2 sigma (1-h) - h e^2/(d^2 sigma) = (2 sigma)(1-h-qh)
+        acc_s += _omh_minus_qh(q)
+        # d/dd [sigma^2 (1-h)] = -h e^2 / d^3 = -(2 sigma^2 / d) q h
+        acc_d += q * math.exp(-q)
+    F = ld + logZ + s2 * acc / n
+    dF_ds = dZs + 2.0 * sigma * acc_s / n
+    dF_dd = 1.0 / d - (a / (d * d)) * dZA - 2.0 * s2 / d * acc_d / n
+    return F, sigma * dF_ds, d * dF_dd
+
+
+@kernel
+def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gtol):
+    """Maximum-likelihood (sigma, d) of one channel (Algorithm 2), warm-started at (sigma0, d0).
+
+    Returns (sigma, d, F, iterations, status). On NONFINITE/BAD_INPUT the start is returned.
+    """
+    if n < 1 or not (a > 0.0) or not (sigma0 > 0.0) or not (d0 > 0.0) or not (d_lo <= d_hi):
+        return sigma0, d0, math.nan, 0, BAD_INPUT
+    lo0 = math.log(sig_lo)
+    hi0 = math.log(sig_hi)
+    lo1 = math.log(d_lo)
+    hi1 = math.log(d_hi)
+    z0 = min(max(math.log(sigma0), lo0), hi0)
+    z1 = min(max(math.log(d0), lo1), hi1)
+    F, g0, g1 = estep_objective(z0, z1, e, n, a)
+    if not (math.isfinite(F) and math.isfinite(g0) and math.isfinite(g1)):
+        return sigma0, d0, F, 0, NONFINITE
+    # inverse-Hessian approximation; F ~ log d + s^2/(2 d^2) has curvature 2 in log d
+    h00 = 0.5
+    h01 = 0.0
+    h11 = 0.5
+    status = NOT_CONVERGED
+    it = 0
+    while it < max_iter:
+        it += 1
+        free0 = not ((z0 <= lo0 and g0 > 0.0) or (z0 >= hi0 and g0 < 0.0))
+        free1 = not ((z1 <= lo1 and g1 > 0.0) or (z1 >= hi1 and g1 < 0.0))
+        pg0 = g0 if free0 else 0.0
+        pg1 = g1 if free1 else 0.0
+        if max(abs(pg0), abs(pg1)) <= gtol:
+            status = OK
+            break
+        if free0 and free1:
+            p0 = -(h00 * g0 + h01 * g1)
+            p1 = -(h01 * g0 + h11 * g1)
+        else:
+            p0 = -h00 * pg0
+            p1 = -h11 * pg1
+        if p0 * pg0 + p1 * pg1 >= 0.0:       # not a descent direction: restart from steepest descent
+            h00, h01, h11 = 0.5, 0.0, 0.5
+            p0 = -0.5 * pg0
+            p1 = -0.5 * pg1
+        pmax = max(abs(p0), abs(p1))
+        alpha = 1.0 if pmax <= 2.0 else 2.0 / pmax   # at most a factor e^2 per step
+        alpha0 = alpha
+        accepted = False
+        for _ in range(40):
+            n0 = min(max(z0 + alpha * p0, lo0), hi0)
+            n1 = min(max(z1 + alpha * p1, lo1), hi1)
+            Fn, gn0, gn1 = estep_objective(n0, n1, e, n, a)
+            if math.isfinite(Fn) and math.isfinite(gn0) and math.isfinite(gn1):
+                if Fn <= F + 1e-4 * (g0 * (n0 - z0) + g1 * (n1 - z1)):
+                    accepted = True
+                    break
+            alpha *= 0.5
+        if accepted and alpha == alpha0:
+            # Flat regions (sigma and d large, Section III-D): the first trial was accepted, so
+            # keep doubling the step while F still decreases, up to the factor-e^2 cap.
+            pnorm = max(abs(p0), abs(p1))
+            while 2.0 * alpha * pnorm <= 2.0:
+                t0 = min(max(z0 + 2.0 * alpha * p0, lo0), hi0)
+                t1 = min(max(z1 + 2.0 * alpha * p1, lo1), hi1)
+                Ft, gt0, gt1 = estep_objective(t0, t1, e, n, a)
+                if not (math.isfinite(Ft) and math.isfinite(gt0) and math.isfinite(gt1)) or Ft >= Fn:
+                    break
+                alpha *= 2.0
+                n0, n1, Fn, gn0, gn1 = t0, t1, Ft, gt0, gt1
+        if not accepted:
+            # no decrease possible at float resolution: we are at the minimum (or on a flat ridge)
+            status = OK if max(abs(pg0), abs(pg1)) <= 1e3 * gtol else NOT_CONVERGED
+            break
+        s0 = n0 - z0
+        s1 = n1 - z1
+        y0 = gn0 - g0
+        y1 = gn1 - g1
+        sy = s0 * y0 + s1 * y1
+        if sy > 1e-12 * math.sqrt((s0 * s0 + s1 * s1) * (y0 * y0 + y1 * y1)):
+            # BFGS inverse update H <- (I - r s y^T) H (I - r y s^T) + r s s^T
+            r = 1.0 / sy
+            hy0 = h00 * y0 + h01 * y1
+            hy1 = h01 * y0 + h11 * y1
+            yhy = y0 * hy0 + y1 * hy1
+            c = (1.0 + r * yhy) * r
+            h00 = h00 + c * s0 * s0 - r * (hy0 * s0 + s0 * hy0)
+            h01 = h01 + c * s0 * s1 - r * (hy0 * s1 + s0 * hy1)
+            h11 = h11 + c * s1 * s1 - r * (hy1 * s1 + s1 * hy1)
+        z0, z1, F, g0, g1 = n0, n1, Fn, gn0, gn1
+        if max(abs(s0), abs(s1)) <= 1e-12:
+            status = OK
+            break
+    return math.exp(z0), math.exp(z1), F, it, status
