@@ -45,6 +45,7 @@ class _Workspace:
         self.ebuf = np.empty(N)
         self.tprev = np.empty(n)
         self.a = np.zeros(m)
+        self.Hes = np.zeros((m, 3))
         self.hist_theta = np.full((em_iter + 1, n), np.nan)
         self.hist_sigma = np.full((em_iter + 1, m), np.nan)
         self.hist_d = np.full((em_iter + 1, m), np.nan)
@@ -181,7 +182,7 @@ class MKCRegressor(LinearModelMixin):
             rounds, fp_its, status, cond = mkc_em(
                 X3, Y2, sigma, d, theta, fixed_a, float(self.a_factor), float(lo), float(hi), float(dlo), float(dhi),
                 em_iter, float(self.em_tol), int(self.max_iter), float(self.tol), int(self.estep_max_iter),
-                float(self.estep_gtol), ws.R, ws.W, ws.A, ws.b, ws.x, ws.L, ws.D, ws.ebuf, ws.tprev, ws.a,
+                float(self.estep_gtol), ws.R, ws.W, ws.A, ws.b, ws.x, ws.L, ws.D, ws.ebuf, ws.tprev, ws.a, ws.Hes,
                 ws.hist_theta, ws.hist_sigma, ws.hist_d)
         else:
             fp_its, status, cond = mstep_fixed_point(X3, Y2, sigma, d, theta, int(self.max_iter), float(self.tol),

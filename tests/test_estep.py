@@ -44,7 +44,7 @@ def test_reaches_the_same_optimum_as_scipy(p, sd, half):
     e = mixture(rng, 600, p, sd, half)
     a = 1.5 * np.abs(e).max()
     dlo, dhi = 1e-6 * a, a
-    s, d, F, its, st = estep_channel(e, e.size, a, 20.0, 2.0, LO, HI, dlo, dhi, 100, 1e-9)
+    s, d, F, its, st = estep_channel(e, e.size, a, 20.0, 2.0, LO, HI, dlo, dhi, 100, 1e-9, np.zeros(3))
     assert st == OK
     fun = lambda z: estep_objective(z[0], z[1], e, e.size, a)[0]  # noqa: E731
     jac = lambda z: np.array(estep_objective(z[0], z[1], e, e.size, a)[1:])  # noqa: E731
@@ -60,8 +60,8 @@ def test_reaches_the_same_optimum_as_scipy(p, sd, half):
 def test_warm_start_converges_immediately(rng):
     e = mixture(rng)
     a = 1.5 * np.abs(e).max()
-    s, d, F, its, st = estep_channel(e, e.size, a, 20.0, 2.0, LO, HI, 1e-6 * a, a, 100, 1e-9)
-    s2, d2, F2, its2, st2 = estep_channel(e, e.size, a, s, d, LO, HI, 1e-6 * a, a, 100, 1e-9)
+    s, d, F, its, st = estep_channel(e, e.size, a, 20.0, 2.0, LO, HI, 1e-6 * a, a, 100, 1e-9, np.zeros(3))
+    s2, d2, F2, its2, st2 = estep_channel(e, e.size, a, s, d, LO, HI, 1e-6 * a, a, 100, 1e-9, np.zeros(3))
     assert st2 == OK and its2 <= 2 and its2 < its
     assert s2 == pytest.approx(s, rel=1e-6) and d2 == pytest.approx(d, rel=1e-6)
 
@@ -69,7 +69,7 @@ def test_warm_start_converges_immediately(rng):
 def test_gaussian_residuals_push_sigma_up(rng):
     e = rng.normal(0, 1.3, 5000)
     a = 1.5 * np.abs(e).max()
-    s, d, F, its, st = estep_channel(e, e.size, a, 1.0, 1.0, LO, HI, 1e-6 * a, a, 200, 1e-9)
+    s, d, F, its, st = estep_channel(e, e.size, a, 1.0, 1.0, LO, HI, 1e-6 * a, a, 200, 1e-9, np.zeros(3))
     # Gaussian limit (Corollary 1): the tail floor exp(-sigma^2) is invisible (< 1e-7 of the peak)
     assert s > 4
     assert d == pytest.approx(1.3, rel=0.05)
@@ -80,7 +80,7 @@ def test_safe_on_degenerate_input():
     # all residuals zero, one huge outlier, uniform data: bounded, finite, never NaN
     for e in (np.zeros(50), np.r_[np.zeros(49), 1e12], np.linspace(-1, 1, 200)):
         a = max(np.abs(e).max(), 1e-12)
-        s, d, F, its, st = estep_channel(e, e.size, a, 20.0, 1.0, LO, HI, 1e-6 * a, a, 100, 1e-9)
+        s, d, F, its, st = estep_channel(e, e.size, a, 20.0, 1.0, LO, HI, 1e-6 * a, a, 100, 1e-9, np.zeros(3))
         assert np.isfinite([s, d, F]).all()
         assert LO * (1 - 1e-12) <= s <= HI * (1 + 1e-12)
         assert 1e-6 * a * (1 - 1e-12) <= d <= a * (1 + 1e-12)
@@ -89,5 +89,5 @@ def test_safe_on_degenerate_input():
 
 
 def test_bad_input_returns_status_not_nan():
-    s, d, F, its, st = estep_channel(np.ones(3), 0, 1.0, 2.0, 1.0, LO, HI, 1e-6, 1.0, 10, 1e-9)
+    s, d, F, its, st = estep_channel(np.ones(3), 0, 1.0, 2.0, 1.0, LO, HI, 1e-6, 1.0, 10, 1e-9, np.zeros(3))
     assert st != OK and (s, d) == (2.0, 1.0)

@@ -18,11 +18,17 @@ from .normaliser import log_normaliser_grad
 
 
 @kernel
-def _omh_minus_qh(q):
-    # (1 - e^-q) - q e^-q without cancellation for small q (series q^2/2 - q^3/3 + q^4/8).
+def _omh_terms(q):
+    """(1 - h, (1 - h) - q h, h) with h = e^-q, from one exp (the E-step's hot loop).
+
+    Small q uses series, so neither 1 - h nor (1 - h) - q h = q^2/2 - q^3/3 + q^4/8 - ... cancels.
+    """
     if q < 1e-3:
-        return q * q * (0.5 - q * (1.0 / 3.0 - q * 0.125))
-    return -math.expm1(-q) - q * math.exp(-q)
+        omh = q * (1.0 - q * (0.5 - q * (1.0 / 6.0 - q * (1.0 / 24.0))))
+        return omh, q * q * (0.5 - q * (1.0 / 3.0 - q * 0.125)), 1.0 - omh
+    h = math.exp(-q)
+    omh = 1.0 - h
+    return omh, omh - q * h, h
 
 
 @kernel
@@ -37,13 +43,13 @@ def estep_objective(ls, ld, e, n, a):
     acc_s = 0.0
     acc_d = 0.0
     for k in range(n):
-        e2 = e[k] * e[k]
-        q = e2 * inv
-        acc += -math.expm1(-q)
+        q = e[k] * e[k] * inv
+        omh, omh_qh, h = _omh_terms(q)
+        acc += omh
         # d/dsigma [sigma^2 (1-h)] = 2 sigma (1-h) - h e^2/(d^2 sigma) = (2 sigma)(1-h-qh)
-        acc_s += _omh_minus_qh(q)
+        acc_s += omh_qh
         # d/dd [sigma^2 (1-h)] = -h e^2 / d^3 = -(2 sigma^2 / d) q h
-        acc_d += q * math.exp(-q)
+        acc_d += q * h
     F = ld + logZ + s2 * acc / n
     dF_ds = dZs + 2.0 * sigma * acc_s / n
     dF_dd = 1.0 / d - (a / (d * d)) * dZA - 2.0 * s2 / d * acc_d / n
@@ -51,10 +57,13 @@ def estep_objective(ls, ld, e, n, a):
 
 
 @kernel
-def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gtol):
+def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gtol, H):
     """Maximum-likelihood (sigma, d) of one channel (Algorithm 2), warm-started at (sigma0, d0).
 
-    Returns (sigma, d, F, iterations, status). On NONFINITE/BAD_INPUT the start is returned.
+    H (3,) = (h00, h01, h11) is the BFGS inverse-Hessian approximation in (log sigma, log d),
+    read as the warm start and written back (H[0] <= 0 means "no curvature known yet"), so a
+    stream's E-steps start from near-Newton steps. Returns (sigma, d, F, iterations, status);
+    on NONFINITE/BAD_INPUT the start is returned.
     """
     if n < 1 or not (a > 0.0) or not (sigma0 > 0.0) or not (d0 > 0.0) or not (d_lo <= d_hi):
         return sigma0, d0, math.nan, 0, BAD_INPUT
@@ -71,6 +80,10 @@ def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gto
     h00 = 0.5
     h01 = 0.0
     h11 = 0.5
+    if H[0] > 0.0 and H[2] > 0.0 and H[0] * H[2] - H[1] * H[1] > 0.0 and math.isfinite(H[0] + H[1] + H[2]):
+        h00 = H[0]
+        h01 = H[1]
+        h11 = H[2]
     status = NOT_CONVERGED
     it = 0
     while it < max_iter:
@@ -105,9 +118,11 @@ def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gto
                     accepted = True
                     break
             alpha *= 0.5
-        if accepted and alpha == alpha0:
-            # Flat regions (sigma and d large, Section III-D): the first trial was accepted, so
-            # keep doubling the step while F still decreases, up to the factor-e^2 cap.
+        pred = -(g0 * (n0 - z0) + g1 * (n1 - z1))
+        if accepted and alpha == alpha0 and pred > 0.0 and (F - Fn) > 0.8 * pred:
+            # Flat regions (sigma and d large, Section III-D): the full step was accepted and F
+            # fell like its linear model (a quadratic model's Newton step gives half), so the
+            # curvature is overestimated: keep doubling while F falls, up to the e^2 cap.
             pnorm = max(abs(p0), abs(p1))
             while 2.0 * alpha * pnorm <= 2.0:
                 t0 = min(max(z0 + 2.0 * alpha * p0, lo0), hi0)
@@ -140,4 +155,7 @@ def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gto
         if max(abs(s0), abs(s1)) <= 1e-12:
             status = OK
             break
+    H[0] = h00
+    H[1] = h01
+    H[2] = h11
     return math.exp(z0), math.exp(z1), F, it, status

@@ -15,8 +15,10 @@ from . import OK, SINGULAR, NONFINITE
 def spd_solve(A, b, x, L, D, n):
     """Solve A x = b for symmetric positive definite A[:n, :n]. Returns (status, cond_est).
 
-    L (n x n) and D (n) are caller-provided scratch; A and b are not modified. cond_est is
-    (max L_ii / min L_ii)^2 of the equilibrated factor, a cheap lower estimate of cond(DAD).
+    L (n x n) and D (n) are caller-provided scratch; A and b are not modified. The diagonal of
+    L holds the inverse pivots 1/l_jj (multiplications instead of divisions in the per-sample
+    path). cond_est is (max l_jj / min l_jj)^2 of the equilibrated factor, a cheap lower
+    estimate of cond(DAD).
     """
     for i in range(n):
         aii = A[i, i]
@@ -26,31 +28,32 @@ def spd_solve(A, b, x, L, D, n):
     lmax = 0.0
     lmin = math.inf
     for j in range(n):
-        s = A[j, j] * D[j] * D[j]
+        s = 1.0                      # (D A D)_jj = 1 exactly
         for k in range(j):
             s -= L[j, k] * L[j, k]
         if not (s > 1e-14):          # not positive definite to working precision
             return SINGULAR, math.inf
         ljj = math.sqrt(s)
-        L[j, j] = ljj
+        inv = 1.0 / ljj
+        L[j, j] = inv
         lmax = max(lmax, ljj)
         lmin = min(lmin, ljj)
         for i in range(j + 1, n):
             s = A[i, j] * D[i] * D[j]
             for k in range(j):
                 s -= L[i, k] * L[j, k]
-            L[i, j] = s / ljj
+            L[i, j] = s * inv
     # forward: L z = D b ; backward: L^T y = z ; x = D y
     for i in range(n):
         s = b[i] * D[i]
         for k in range(i):
             s -= L[i, k] * x[k]
-        x[i] = s / L[i, i]
+        x[i] = s * L[i, i]
     for i in range(n - 1, -1, -1):
         s = x[i]
         for k in range(i + 1, n):
             s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
+        x[i] = s * L[i, i]
     for i in range(n):
         x[i] *= D[i]
         if not math.isfinite(x[i]):

@@ -1,0 +1,242 @@
+"""Streaming MKC-EM over a fixed-size window: per-sample update, E-step + rebuild every K samples.
+
+All state lives in caller-owned arrays (mkc_stream/state.py lists them; they map one to one onto
+the C struct). No kernel allocates.
+
+Numerical form. The window's weighted normal equations A theta = b (eq. (15)) are sums of
+per-row terms c x x^T with c = w / d^2. Each ring-buffer slot stores the c it added, so that
+replacing a sample subtracts exactly what it added, whatever sigma/d have become since. theta is
+re-solved every sample by an equilibrated Cholesky factorisation of A (n <= 16: ~n^3/6 flops,
+cheaper and safer than downdating A^-1, which loses positive definiteness). Every K samples the
+E-step (Algorithm 2) runs on the window's residuals, warm-started from the current (sigma, d),
+and A, b are rebuilt from the buffer with the new weights by fixed-point rounds (Algorithm 1):
+the batch M-step on the window, which also wipes the rounding drift of the add/remove updates.
+"""
+import math
+
+from .._numba import kernel
+from . import OK, NOT_CONVERGED
+from .estep import estep_channel
+from .linalg import spd_solve
+
+# status codes specific to the stream (continuing the kernel numbering)
+WARMING_UP = 5     # fewer than min_samples in the window: theta not solved yet
+REJECTED = 6       # the sample had NaN/inf and was not added
+
+# icfg: integer configuration
+I_N, I_M, I_W, I_K, I_FP_ROUNDS, I_ES_MAX_ITER, I_MIN_SAMPLES = range(7)
+N_ICFG = 7
+# fcfg: float configuration
+F_SIG_LO, F_SIG_HI, F_DLO, F_DHI, F_AFAC, F_FIXED_A, F_ES_GTOL, F_FP_TOL = range(8)
+N_FCFG = 8
+# cnt: int64 counters
+(C_HEAD, C_COUNT, C_SEEN, C_REJECTED, C_ESTEPS, C_SINCE, C_STATUS, C_SINGULAR, C_FP_ITERS,
+ C_LAST_SLOT) = range(10)
+N_COUNTERS = 10
+# fst: float64 state scalars
+S_COND, S_LAST_F = range(2)
+N_FSTATE = 2
+
+
+@kernel
+def row_update(A, b, x, y, c, n):
+    """A += c x x^T (lower triangle), b += c x y: one channel-row of eq. (15)."""
+    for p in range(n):
+        xp = x[p] * c
+        b[p] += xp * y
+        for q in range(p + 1):
+            A[p, q] += xp * x[q]
+
+
+@kernel
+def solve_window(A, b, theta, L, D, xs, n):
+    """Mirror A's lower triangle and solve A theta = b; theta is kept if A is singular."""
+    for p in range(n):
+        for q in range(p + 1, n):
+            A[p, q] = A[q, p]
+    st, cond = spd_solve(A, b, xs, L, D, n)
+    if st == OK:
+        for j in range(n):
+            theta[j] = xs[j]
+    return st, cond
+
+
+@kernel
+def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst):
+    """Fixed-point rounds of Algorithm 1 on the window (eq. (16)), at most icfg[FP_ROUNDS].
+
+    Each round: weights at the current theta -> A, b from scratch (C records each row's c) ->
+    solve. Stops when ||theta_new - theta|| <= fp_tol ||theta||. Returns the status.
+    """
+    n = icfg[I_N]
+    m = icfg[I_M]
+    count = cnt[C_COUNT]
+    status = NOT_CONVERGED
+    for _ in range(icfg[I_FP_ROUNDS]):
+        for p in range(n):
+            b[p] = 0.0
+            tprev[p] = theta[p]
+            for q in range(n):
+                A[p, q] = 0.0
+        for s in range(count):
+            for i in range(m):
+                r = Y[s, i]
+                for j in range(n):
+                    r -= X[s, i, j] * theta[j]
+                c = math.exp(-r * r / (2.0 * d[i] * d[i] * sigma[i] * sigma[i])) / (d[i] * d[i])
+                C[s, i] = c
+                if c != 0.0:
+                    row_update(A, b, X[s, i], Y[s, i], c, n)
+        st, cond = solve_window(A, b, theta, L, D, xs, n)
+        fst[S_COND] = cond
+        cnt[C_FP_ITERS] += 1
+        if st != OK:
+            cnt[C_SINGULAR] += 1
+            return st
+        num = 0.0
+        den = 0.0
+        for j in range(n):
+            num += (theta[j] - tprev[j]) ** 2
+            den += tprev[j] ** 2
+        if math.sqrt(num) <= fcfg[F_FP_TOL] * max(math.sqrt(den), 1e-300):
+            status = OK
+            break
+    return status
+
+
+@kernel
+def estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst):
+    """Algorithm 2 per channel on the window's residuals at the current theta, warm-started."""
+    n = icfg[I_N]
+    m = icfg[I_M]
+    count = cnt[C_COUNT]
+    for s in range(count):
+        for i in range(m):
+            r = Y[s, i]
+            for j in range(n):
+                r -= X[s, i, j] * theta[j]
+            R[s, i] = r
+    Fsum = 0.0
+    for i in range(m):
+        amax = 0.0
+        ymax = 0.0
+        for s in range(count):
+            ebuf[s] = R[s, i]
+            amax = max(amax, abs(R[s, i]))
+            ymax = max(ymax, abs(Y[s, i]))
+        ai = fcfg[F_FIXED_A] if fcfg[F_FIXED_A] > 0.0 else max(fcfg[F_AFAC] * amax, 1e-12 * (1.0 + ymax))
+        a[i] = ai
+        s_new, d_new, F, its, st = estep_channel(ebuf, count, ai, sigma[i], d[i], fcfg[F_SIG_LO], fcfg[F_SIG_HI],
+                                                 fcfg[F_DLO] * ai, fcfg[F_DHI] * ai, icfg[I_ES_MAX_ITER],
+                                                 fcfg[F_ES_GTOL], Hes[i])
+        if st == OK or st == NOT_CONVERGED:
+            sigma[i] = s_new
+            d[i] = d_new
+            Fsum += F
+    fst[S_LAST_F] = Fsum
+    cnt[C_ESTEPS] += 1
+
+
+@kernel
+def initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst):
+    """First solve once min_samples are in: WLS (sigma = inf) on the window, then Algorithm 1."""
+    n = icfg[I_N]
+    m = icfg[I_M]
+    count = cnt[C_COUNT]
+    for p in range(n):
+        b[p] = 0.0
+        for q in range(n):
+            A[p, q] = 0.0
+    for s in range(count):
+        for i in range(m):
+            wd = 1.0 / (d[i] * d[i]) if d[i] > 0.0 else 1.0
+            row_update(A, b, X[s, i], Y[s, i], wd, n)
+    st, cond = solve_window(A, b, theta, L, D, xs, n)
+    fst[S_COND] = cond
+    if st != OK:
+        cnt[C_SINGULAR] += 1
+        return st
+    # d unset (<= 0): start from the RMS of the WLS residuals; the first E-step refines it
+    for i in range(m):
+        if not d[i] > 0.0:
+            acc = 0.0
+            for s in range(count):
+                r = Y[s, i]
+                for j in range(n):
+                    r -= X[s, i, j] * theta[j]
+                acc += r * r
+            d[i] = max(math.sqrt(acc / count), 1e-300)
+    return rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+
+
+@kernel
+def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, xk, yk, slot):
+    """Feed one sample (xk (m, n), yk (m,)) into window slot `slot` (-1: the ring buffer's head).
+
+    Returns the status of this step: OK, NOT_CONVERGED, SINGULAR, WARMING_UP or REJECTED.
+    """
+    n = icfg[I_N]
+    m = icfg[I_M]
+    W = icfg[I_W]
+    for i in range(m):
+        if not math.isfinite(yk[i]):
+            cnt[C_REJECTED] += 1
+            return REJECTED
+        for j in range(n):
+            if not math.isfinite(xk[i, j]):
+                cnt[C_REJECTED] += 1
+                return REJECTED
+    if slot < 0:
+        slot = cnt[C_HEAD]
+        cnt[C_HEAD] = (slot + 1) % W
+    cnt[C_LAST_SLOT] = slot
+    if slot < cnt[C_COUNT]:
+        # replace: subtract exactly what this slot added
+        for i in range(m):
+            if C[slot, i] != 0.0:
+                row_update(A, b, X[slot, i], Y[slot, i], -C[slot, i], n)
+    else:
+        cnt[C_COUNT] += 1
+    ready = cnt[C_ESTEPS] > 0 or cnt[C_FP_ITERS] > 0
+    for i in range(m):
+        Y[slot, i] = yk[i]
+        r = yk[i]
+        for j in range(n):
+            X[slot, i, j] = xk[i, j]
+            r -= xk[i, j] * theta[j]
+        c = math.exp(-r * r / (2.0 * d[i] * d[i] * sigma[i] * sigma[i])) / (d[i] * d[i]) if ready else 0.0
+        C[slot, i] = c
+        if c != 0.0:
+            row_update(A, b, xk[i], yk[i], c, n)
+    cnt[C_SEEN] += 1
+    cnt[C_SINCE] += 1
+    if cnt[C_COUNT] < icfg[I_MIN_SAMPLES]:
+        cnt[C_STATUS] = WARMING_UP
+        return WARMING_UP
+    if not ready:
+        st = initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+        if st != OK and st != NOT_CONVERGED:
+            cnt[C_STATUS] = st
+            return st
+        cnt[C_SINCE] = icfg[I_K]          # run the first E-step now
+    if cnt[C_SINCE] >= icfg[I_K]:
+        cnt[C_SINCE] = 0
+        estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
+        st = rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+    else:
+        st, cond = solve_window(A, b, theta, L, D, xs, n)
+        fst[S_COND] = cond
+        if st != OK:
+            cnt[C_SINGULAR] += 1
+    cnt[C_STATUS] = st
+    return st
+
+
+@kernel
+def learn_many(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, Xs, Ys, status_out):
+    """learn_one over Xs (T, m, n), Ys (T, m) in one jitted loop; status_out (T,) int8."""
+    T = Xs.shape[0]
+    for t in range(T):
+        status_out[t] = learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst,
+                                  Xs[t], Ys[t], -1)
+    return cnt[C_STATUS]
