@@ -18,7 +18,11 @@ class AcceptanceRules:
     min_coverage: float = 0.5              # of the 72 equal-area direction cells
     max_condition: float = 1e6             # of the equilibrated weighted normal matrix
     max_outlier_fraction: float = 0.4      # a disturbance-dominated window is not a calibration
-    max_residual_rel: float = 0.05         # inlier |m_cal| - F rms, relative to F
+    # inlier |m_cal| - F rms relative to F: catches a model that does not fit (a disturbance-dominated
+    # window, the wrong sensor axis order). Cheap sensors are noisy (the QMC5883L demo: 6.2% rms), and
+    # noise alone does not bias a fit over thousands of samples, so the gate is 10%, not the 3-5% of
+    # peers tuned for quiet sensors.
+    max_residual_rel: float = 0.10
     field_range_ut: tuple = EARTH_FIELD_UT # checked only when the unit is known to be uT
 
 

@@ -17,6 +17,12 @@ def residuals(X, Y, theta, R):
 
 
 @kernel
+def weight_exponent_scale(sigma, d):
+    """1 / (2 d^2 sigma^2): w = exp(-e^2 * this). One formula for batch and stream (same rounding)."""
+    return 1.0 / (2.0 * d * d * sigma * sigma)
+
+
+@kernel
 def kernel_weights(R, sigma, d, W):
     """W[k, i] = G_sigma_i(e_k(i)/d_i) = exp(-e^2 / (2 d_i^2 sigma_i^2))  (the W_k of eq. (14)).
 
@@ -24,7 +30,7 @@ def kernel_weights(R, sigma, d, W):
     """
     N, m = R.shape
     for i in range(m):
-        c = 1.0 / (2.0 * d[i] * d[i] * sigma[i] * sigma[i])
+        c = weight_exponent_scale(sigma[i], d[i])
         for k in range(N):
             W[k, i] = math.exp(-R[k, i] * R[k, i] * c)
 

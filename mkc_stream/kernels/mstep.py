@@ -20,7 +20,7 @@ def accumulate_normal(X, Y, W, d, A, b):
             A[p, q] = 0.0
     for k in range(N):
         for i in range(m):
-            c = W[k, i] / (d[i] * d[i])
+            c = W[k, i] * (1.0 / (d[i] * d[i]))
             if c == 0.0:
                 continue
             y = Y[k, i]

@@ -18,6 +18,7 @@ from .._numba import kernel
 from . import OK, NOT_CONVERGED
 from .estep import estep_channel
 from .linalg import spd_solve
+from .correntropy import weight_exponent_scale
 
 # status codes specific to the stream (continuing the kernel numbering)
 WARMING_UP = 5     # fewer than min_samples in the window: theta not solved yet
@@ -83,7 +84,7 @@ def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fs
                 r = Y[s, i]
                 for j in range(n):
                     r -= X[s, i, j] * theta[j]
-                c = math.exp(-r * r / (2.0 * d[i] * d[i] * sigma[i] * sigma[i])) / (d[i] * d[i])
+                c = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i])) * (1.0 / (d[i] * d[i]))
                 C[s, i] = c
                 if c != 0.0:
                     row_update(A, b, X[s, i], Y[s, i], c, n)
@@ -149,7 +150,7 @@ def initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tpre
             A[p, q] = 0.0
     for s in range(count):
         for i in range(m):
-            wd = 1.0 / (d[i] * d[i]) if d[i] > 0.0 else 1.0
+            wd = 1.0 * (1.0 / (d[i] * d[i])) if d[i] > 0.0 else 1.0
             row_update(A, b, X[s, i], Y[s, i], wd, n)
     st, cond = solve_window(A, b, theta, L, D, xs, n)
     fst[S_COND] = cond
@@ -204,7 +205,7 @@ def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tpre
         for j in range(n):
             X[slot, i, j] = xk[i, j]
             r -= xk[i, j] * theta[j]
-        c = math.exp(-r * r / (2.0 * d[i] * d[i] * sigma[i] * sigma[i])) / (d[i] * d[i]) if ready else 0.0
+        c = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i])) * (1.0 / (d[i] * d[i])) if ready else 0.0
         C[slot, i] = c
         if c != 0.0:
             row_update(A, b, xk[i], yk[i], c, n)

@@ -1,0 +1,878 @@
+"""The recording file: the interchange CSV every mkc_stream command reads and writes.
+
+Format (the project's recording spec)::
+
+    # sensor: QMC5883L          <- optional metadata lines first, each "# key: value"
+    # units.mag: counts
+    t,mx,my,mz,ax,ay,az,temp    <- one header row; t, mx, my, mz are required
+    0,6242,980,3872,0.01,...    <- one row per sample
+
+* An empty cell or ``nan`` is a missing value. Optional columns keep it as NaN.
+* A row is *bad input* when a required cell (t, mx, my, mz) is missing, not a number or not
+  finite, when a cell of any column is not a number (garbled line), when it has the wrong number
+  of cells, when it is the cut-off last line of a truncated file, or when its ``t`` is smaller
+  than the largest ``t`` accepted before it (time must be non-decreasing; rows are never
+  reordered). Bad rows are left out of the arrays and listed in :attr:`Recording.bad_rows` as
+  ``(line number, reason)`` with 1-based file line numbers; nothing is dropped silently and
+  nothing is invented. Each reason starts with a kind (``"non-numeric"``, ``"missing"``,
+  ``"non-finite"``, ``"cell count"``, ``"truncated"``, ``"t decreasing"``, ``"unexpected
+  comment"``, ``"dropout"``) followed by ``": "`` and the details.
+* Blank lines carry no sample and are skipped. A last line without a line ending is accepted when
+  it parses completely (it cannot be told from a complete row); a ``.gz`` stream that ends early
+  always makes its last line bad.
+* A gap is a time step larger than :data:`GAP_FACTOR` (2.5) times the median positive time step
+  (a robust nominal period that ignores the gaps themselves); :meth:`Recording.counts` reports
+  how many there are.
+
+:func:`write_recording` writes every float with ``repr`` (shortest string that round-trips), so
+``read_recording(write_recording(...))`` returns bit-identical arrays.
+
+The ``load_*`` functions read the public third-party datasets used by the studies in ``tools/``
+into :class:`Recording` objects. For datasets stored as arrays (``.mat``, ``.hdf5``, ``.json``),
+the "line number" of a bad row is its 1-based sample index in the source array.
+"""
+from __future__ import annotations
+
+import contextlib
+import gzip
+import io
+import json
+import math
+import os
+import pathlib
+import tempfile
+import warnings
+import zlib
+from dataclasses import dataclass, field
+from typing import ClassVar, Iterable, Mapping
+
+import numpy as np
+
+__all__ = [
+    "GAP_FACTOR",
+    "REQUIRED",
+    "Recording",
+    "RecordingError",
+    "bundled_recording",
+    "bundled_recording_path",
+    "bundled_recordings",
+    "load_broad",
+    "load_cave_survey_json",
+    "load_ck_explorer_csv",
+    "load_qmc5883l_csv",
+    "load_rasteiro_mat",
+    "read_recording",
+    "write_recording",
+]
+
+REQUIRED = ("t", "mx", "my", "mz")
+GAP_FACTOR = 2.5
+
+
+class RecordingError(ValueError):
+    """The file cannot be read as a recording at all (no header, missing required column, ...)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# the in-memory recording
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Recording:
+    """A recorded stream: time, raw magnetometer, auxiliary signals, metadata and bad rows.
+
+    ``t`` (N,) float64 seconds, non-decreasing; ``mag`` (N, 3) float64 raw magnetometer in
+    :attr:`mag_unit`; ``aux`` maps every other column name (``ax``..``gz``, ``temp``,
+    ``current``, ``throttle``, ``voltage`` or any other name) to an (N,) float64 array with NaN
+    for missing cells; ``meta`` holds the ``# key: value`` lines (unknown keys kept);
+    ``bad_rows`` lists ``(line number, reason)`` of every row left out; ``path`` is where it was
+    read from (``None`` when built in memory).
+    """
+
+    t: np.ndarray
+    mag: np.ndarray
+    aux: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, str] = field(default_factory=dict)
+    bad_rows: list[tuple[int, str]] = field(default_factory=list)
+    path: pathlib.Path | None = None
+
+    GAP_FACTOR: ClassVar[float] = GAP_FACTOR
+
+    def __post_init__(self):
+        self.t = np.ascontiguousarray(self.t, dtype=np.float64).reshape(-1)
+        n = self.t.shape[0]
+        self.mag = np.ascontiguousarray(self.mag, dtype=np.float64)
+        if self.mag.shape != (n, 3):
+            raise ValueError(f"mag must have shape ({n}, 3) to match t, got {self.mag.shape}")
+        aux = {}
+        for name, col in dict(self.aux).items():
+            col = np.ascontiguousarray(col, dtype=np.float64).reshape(-1)
+            if col.shape != (n,):
+                raise ValueError(f"aux column {name!r} has {col.shape[0]} values, expected {n}")
+            aux[str(name)] = col
+        self.aux = aux
+        self.meta = {str(k): str(v) for k, v in dict(self.meta).items()}
+        self.bad_rows = [(int(line), str(reason)) for line, reason in self.bad_rows]
+        if self.path is not None:
+            self.path = pathlib.Path(self.path)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def __repr__(self) -> str:
+        src = f", path={str(self.path)!r}" if self.path is not None else ""
+        return (f"Recording(samples={len(self)}, aux={list(self.aux)}, bad_rows={len(self.bad_rows)}, "
+                f"mag_unit={self.mag_unit!r}{src})")
+
+    @property
+    def mag_unit(self) -> str:
+        """Unit of :attr:`mag`, from the ``units.mag`` metadata (default ``"uT"``)."""
+        return self.meta.get("units.mag", "uT") or "uT"
+
+    @property
+    def columns(self) -> list[str]:
+        """Column names in file order: ``t, mx, my, mz`` then the auxiliary columns."""
+        return list(REQUIRED) + list(self.aux)
+
+    @property
+    def rate_hz(self) -> float | None:
+        """The ``rate_hz`` metadata if it is a number, else 1 / median positive time step."""
+        with contextlib.suppress(KeyError, ValueError):
+            rate = float(self.meta["rate_hz"])
+            if math.isfinite(rate) and rate > 0:
+                return rate
+        dt = np.diff(self.t)
+        dt = dt[dt > 0]
+        return float(1.0 / np.median(dt)) if dt.size else None
+
+    def gap_indices(self) -> np.ndarray:
+        """Indices ``i`` such that ``t[i+1] - t[i]`` exceeds GAP_FACTOR x the median positive step."""
+        dt = np.diff(self.t)
+        pos = dt[dt > 0]
+        if pos.size < 2:
+            return np.zeros(0, dtype=np.intp)
+        return np.flatnonzero(dt > self.GAP_FACTOR * float(np.median(pos)))
+
+    def counts(self) -> dict[str, int]:
+        """``{"samples": N, "bad_frames": bad rows, "drops": 0, "gaps": time gaps}``.
+
+        ``drops`` (frames lost by a live transport) is always 0 for a file.
+        """
+        return {
+            "samples": len(self),
+            "bad_frames": len(self.bad_rows),
+            "drops": 0,
+            "gaps": int(self.gap_indices().size),
+        }
+
+    def bad_summary(self) -> dict[str, int]:
+        """Number of bad rows by kind (the part of each reason before the first ``": "``)."""
+        out: dict[str, int] = {}
+        for _, reason in self.bad_rows:
+            kind = reason.split(": ", 1)[0]
+            out[kind] = out.get(kind, 0) + 1
+        return out
+
+    def write(self, path) -> pathlib.Path:
+        """Write this recording with :func:`write_recording` (bad rows are not written)."""
+        return write_recording(path, self.t, self.mag, self.aux, self.meta)
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+# ----------------------------------------------------------------------------------------------
+
+
+def _read_bytes(path: pathlib.Path) -> tuple[bytes, bool]:
+    """File content, gunzipped when it is gzip (by magic bytes); True if the gz stream ends early."""
+    raw = path.read_bytes()
+    if raw[:2] != b"\x1f\x8b":
+        return raw, False
+    parts = []
+    truncated = False
+    while raw:
+        d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        try:
+            parts.append(d.decompress(raw))
+            parts.append(d.flush())
+        except zlib.error:
+            truncated = True
+            break
+        if not d.eof:
+            truncated = True
+            break
+        raw = d.unused_data
+        if raw and raw[:2] != b"\x1f\x8b":  # trailing padding after the last member
+            break
+    return b"".join(parts), truncated
+
+
+def _decode(data: bytes) -> str:
+    text = data.decode("utf-8", errors="replace")
+    if text.startswith("\ufeff"):
+        text = text[1:]
+    if "\r" in text:
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
+    return text
+
+
+def _cell_value(cell: str) -> float | None:
+    """float of a cell; NaN for an empty cell or nan; None when it is not a number."""
+    c = cell.strip()
+    if not c:
+        return math.nan
+    try:
+        return float(c)
+    except ValueError:
+        return None
+
+
+_CHUNK = 32768  # lines per numpy parse; a chunk with a bad line is re-parsed line by line
+
+
+def _parse_body(body: str, first_line: int, names: list[str], required: Iterable[int],
+                stream_truncated: bool) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
+    """Parse the data rows of a comma-separated body.
+
+    Returns ``(values (n, ncol), file line numbers (n,), bad rows)``: the rows kept, their line
+    numbers and the bad rows with reasons. ``first_line`` is the file line number of the first
+    body line. Required cells must be finite numbers.
+
+    Speed: chunks of lines go through numpy's C parser; it refuses empty cells, wrong cell
+    counts and non-numbers and skips blank lines, so a chunk is only trusted when it gave exactly
+    one row per line, and is otherwise parsed line by line in Python. The last non-blank line is
+    always parsed on its own (it may be cut short).
+    """
+    ncol = len(names)
+    required = list(required)
+    ends_with_newline = body.endswith("\n")
+    lines = body.split("\n")
+    if ends_with_newline:
+        lines.pop()  # the empty string after the final line ending
+    last = len(lines) - 1
+    while last >= 0 and not lines[last].strip():
+        last -= 1
+    cut = stream_truncated or not ends_with_newline  # the last non-blank line may be cut short
+
+    blocks: list[np.ndarray] = []
+    labels: list[np.ndarray] = []
+    bad: list[tuple[int, str]] = []
+    for start in range(0, max(last, 0), _CHUNK):
+        stop = min(start + _CHUNK, last)
+        chunk = lines[start:stop]
+        arr = None
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                arr = np.loadtxt(io.StringIO("\n".join(chunk)), delimiter=",", dtype=np.float64,
+                                 comments=None, ndmin=2, quotechar=None)
+        except ValueError:
+            pass
+        if arr is not None and arr.shape == (len(chunk), ncol):
+            blocks.append(arr)
+            labels.append(np.arange(first_line + start, first_line + stop))
+        else:
+            a, lab = _parse_lines(chunk, first_line + start, names, bad, False, False)
+            blocks.append(a)
+            labels.append(lab)
+    if last >= 0:
+        a, lab = _parse_lines(lines[last:last + 1], first_line + last, names, bad, cut, stream_truncated)
+        blocks.append(a)
+        labels.append(lab)
+    data = np.concatenate(blocks) if blocks else np.zeros((0, ncol))
+    linenos = np.concatenate(labels) if labels else np.zeros(0, dtype=np.intp)
+
+    # required cells must be finite numbers
+    if data.shape[0] and required:
+        req = data[:, required]
+        bad_req = ~np.isfinite(req).all(axis=1)
+        if bad_req.any():
+            for i in np.flatnonzero(bad_req):
+                j = next(k for k in range(len(required)) if not math.isfinite(req[i, k]))
+                v = float(req[i, j])
+                col = names[required[j]]
+                if math.isnan(v):
+                    reason = f"missing: required column {col!r} is empty or nan"
+                else:
+                    reason = f"non-finite: required column {col!r} is {v!r}"
+                bad.append((int(linenos[i]), reason))
+            data = data[~bad_req]
+            linenos = linenos[~bad_req]
+    return data, linenos, bad
+
+
+def _parse_lines(lines: list[str], first_line: int, names: list[str], bad: list[tuple[int, str]],
+                 is_last_cut: bool, stream_truncated: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per-line parser: every malformed line becomes a bad row (appended to ``bad``).
+
+    ``is_last_cut``: ``lines`` is the file's last line and may have been cut mid-row;
+    ``stream_truncated``: it certainly was (compressed stream ended early).
+    """
+    ncol = len(names)
+    rows: list[list[float]] = []
+    linenos: list[int] = []
+    for k, line in enumerate(lines):
+        lineno = first_line + k
+        cells = line.split(",")
+        reason = None
+        vals: list[float] = []
+        if not line.strip():
+            continue
+        if line.lstrip().startswith("#"):
+            reason = "unexpected comment: comment line after the header"
+        elif len(cells) != ncol:
+            reason = f"cell count: expected {ncol} cells, got {len(cells)}"
+        else:
+            for name, cell in zip(names, cells):
+                v = _cell_value(cell)
+                if v is None:
+                    shown = cell.strip()
+                    shown = shown if len(shown) <= 40 else shown[:37] + "..."
+                    reason = f"non-numeric: column {name!r} has {shown!r}"
+                    break
+                vals.append(v)
+        if reason is not None and is_last_cut:
+            reason = f"truncated: last line ends mid-row ({reason})"
+        elif reason is None and stream_truncated:
+            reason = "truncated: last line of a compressed stream that ends early"
+        if reason is not None:
+            bad.append((lineno, reason))
+        else:
+            rows.append(vals)
+            linenos.append(lineno)
+    data = np.array(rows, dtype=np.float64).reshape(len(rows), ncol)
+    return data, np.array(linenos, dtype=np.intp)
+
+
+def _decreasing(t: np.ndarray) -> np.ndarray:
+    """Mask of samples whose t is below the largest t before them (NaN-free input)."""
+    bad = np.zeros(t.shape, dtype=bool)
+    if t.size > 1:
+        cummax = np.maximum.accumulate(t)
+        bad[1:] = t[1:] < cummax[:-1]
+    return bad
+
+
+def _drop_decreasing(t, keep_cols, labels, bad, what="t"):
+    """Remove samples whose time goes backwards; add them to ``bad`` with ``labels`` as line numbers."""
+    dec = _decreasing(t)
+    if dec.any():
+        cummax = np.maximum.accumulate(t)
+        for i in np.flatnonzero(dec):
+            bad.append((int(labels[i]), f"t decreasing: {what}={float(t[i])!r} is below the earlier "
+                                        f"{what}={float(cummax[i - 1])!r}"))
+        keep = ~dec
+        t = t[keep]
+        keep_cols = [c[keep] for c in keep_cols]
+        labels = labels[keep]
+    return t, keep_cols, labels
+
+
+def _parse_meta_line(line: str, meta: dict[str, str]) -> None:
+    content = line.strip()[1:].strip()
+    if not content:
+        return
+    if ":" in content:
+        key, value = content.split(":", 1)
+        key = key.strip()
+        if key:
+            meta[key] = value.strip()
+            return
+    meta["comment"] = f"{meta['comment']}; {content}" if "comment" in meta else content
+
+
+def read_recording(path) -> Recording:
+    """Read a recording file (``.csv`` or ``.csv.gz``; gzip is recognised by its magic bytes).
+
+    Raises :class:`RecordingError` for a file that is empty, holds only metadata, has a malformed
+    header or lacks a required column (``t``, ``mx``, ``my``, ``mz``). Bad rows never raise: they
+    are reported in :attr:`Recording.bad_rows` (see the module documentation for the rules).
+    """
+    path = pathlib.Path(path)
+    data, truncated = _read_bytes(path)
+    text = _decode(data)
+    del data
+    meta: dict[str, str] = {}
+    pos = 0
+    lineno = 0
+    header = None
+    while pos < len(text):
+        end = text.find("\n", pos)
+        if end < 0:
+            end = len(text)
+        line = text[pos:end]
+        lineno += 1
+        pos = end + 1
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            _parse_meta_line(s, meta)
+            continue
+        header = line
+        break
+    if header is None:
+        what = "is empty" if not meta else "holds only metadata lines (no header row)"
+        raise RecordingError(f"{path}: the file {what}; a recording needs a header row "
+                             f"with at least {','.join(REQUIRED)} and data rows")
+    header_line = lineno
+    names = [c.strip() for c in header.split(",")]
+    if any(not n for n in names):
+        raise RecordingError(f"{path}: line {header_line}: empty column name in header {header.strip()!r}")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise RecordingError(f"{path}: line {header_line}: duplicate column name(s) {dup} in header")
+    missing = [c for c in REQUIRED if c not in names]
+    if missing:
+        raise RecordingError(
+            f"{path}: line {header_line}: missing required column(s) {', '.join(missing)}; "
+            f"the header has {', '.join(names)} but a recording needs {', '.join(REQUIRED)}")
+
+    body = text[pos:] if pos <= len(text) else ""
+    del text
+    req_idx = [names.index(c) for c in REQUIRED]
+    values, linenos, bad = _parse_body(body, header_line + 1, names, req_idx, truncated)
+    del body
+    t = values[:, req_idx[0]]
+    t, (values,), linenos = _drop_decreasing(t, [values], linenos, bad)
+    bad.sort(key=lambda b: b[0])
+    mag = values[:, req_idx[1:]]
+    aux = {n: np.ascontiguousarray(values[:, j]) for j, n in enumerate(names) if n not in REQUIRED}
+    return Recording(t=np.ascontiguousarray(t), mag=np.ascontiguousarray(mag), aux=aux, meta=meta,
+                     bad_rows=bad, path=path)
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+# ----------------------------------------------------------------------------------------------
+
+
+def _format_column(col: np.ndarray) -> list[str]:
+    """Shortest round-tripping text of each value (``repr``), integers without a trailing ``.0``."""
+    out = list(map(float.__repr__, col.tolist()))
+    return [s[:-2] if s.endswith(".0") else s for s in out]
+
+
+def _check_name(name: str, what: str) -> str:
+    name = str(name)
+    if not name or name != name.strip() or any(ch in name for ch in ",\n\r"):
+        raise ValueError(f"{what} {name!r} must be non-empty, without commas, line breaks or "
+                         f"surrounding spaces")
+    return name
+
+
+def _file_mode(path: pathlib.Path) -> int:
+    """Permissions for a new file: the existing file's, else 0o666 minus the umask."""
+    with contextlib.suppress(OSError):
+        return path.stat().st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def write_recording(path, t, mag, aux: Mapping[str, np.ndarray] | None = None,
+                    meta: Mapping[str, object] | None = None) -> pathlib.Path:
+    """Write a recording file; gzip-compressed when the name ends in ``.gz``.
+
+    Columns are ``t, mx, my, mz`` then the ``aux`` columns in their order; ``meta`` becomes the
+    ``# key: value`` lines (values are written with ``str`` and read back stripped). Floats are
+    written with ``repr`` so a read gives back bit-identical arrays (NaN is written ``nan``).
+    The file is written to a temporary name and renamed, so a reader never sees half a file.
+    Returns the path.
+    """
+    path = pathlib.Path(path)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    mag = np.asarray(mag, dtype=np.float64)
+    n = t.shape[0]
+    if mag.shape != (n, 3):
+        raise ValueError(f"mag must have shape ({n}, 3) to match t, got {mag.shape}")
+    cols = [t, mag[:, 0], mag[:, 1], mag[:, 2]]
+    names = list(REQUIRED)
+    for name, col in (aux or {}).items():
+        name = _check_name(name, "aux column name")
+        if name in names or name.startswith("#"):
+            raise ValueError(f"aux column name {name!r} clashes with another column or a comment")
+        col = np.asarray(col, dtype=np.float64).reshape(-1)
+        if col.shape != (n,):
+            raise ValueError(f"aux column {name!r} has {col.shape[0]} values, expected {n}")
+        names.append(name)
+        cols.append(col)
+    lines = []
+    for key, value in (meta or {}).items():
+        key = _check_name(key, "metadata key")
+        value = str(value)
+        if ":" in key or key.startswith("#"):
+            raise ValueError(f"metadata key {key!r} must not contain ':' or start with '#'")
+        if "\n" in value or "\r" in value:
+            raise ValueError(f"metadata value of {key!r} must be a single line")
+        lines.append(f"# {key}: {value}".rstrip() + "\n")
+    lines.append(",".join(names) + "\n")
+    text_cols = [_format_column(c) for c in cols]
+    head = "".join(lines)
+    body = "\n".join(map(",".join, zip(*text_cols)))
+    payload = (head + body + ("\n" if n else "")).encode("utf-8")
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            if path.name.lower().endswith(".gz"):
+                with gzip.GzipFile(filename="", mode="wb", fileobj=f, mtime=0, compresslevel=6) as gz:
+                    gz.write(payload)
+            else:
+                f.write(payload)
+        os.chmod(tmp, _file_mode(path))
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# the bundled recording(s)
+# ----------------------------------------------------------------------------------------------
+
+_RESOURCE_STACK = contextlib.ExitStack()
+
+
+def bundled_recordings() -> list[str]:
+    """Names of the recordings shipped in ``mkc_stream/data``."""
+    from importlib import resources
+
+    d = resources.files("mkc_stream").joinpath("data")
+    return sorted(p.name for p in d.iterdir() if p.name.endswith((".csv", ".csv.gz")))
+
+
+def bundled_recording_path(name: str = "qmc5883l_noisy.csv") -> pathlib.Path:
+    """Filesystem path of a recording shipped with the package (``mkc_stream/data/<name>``).
+
+    The default is the real QMC5883L recording (MIT, see ``mkc_stream/data/LICENSES.md``).
+    """
+    from importlib import resources
+
+    ref = resources.files("mkc_stream").joinpath("data").joinpath(name)
+    if not ref.is_file():
+        raise FileNotFoundError(f"no bundled recording {name!r}; available: {bundled_recordings()}")
+    if isinstance(ref, os.PathLike):
+        return pathlib.Path(os.fspath(ref))
+    # installed in a zip: extract once, kept until the interpreter exits
+    import atexit
+
+    if not getattr(_RESOURCE_STACK, "_registered", False):
+        atexit.register(_RESOURCE_STACK.close)
+        _RESOURCE_STACK._registered = True  # type: ignore[attr-defined]
+    return pathlib.Path(_RESOURCE_STACK.enter_context(resources.as_file(ref)))
+
+
+def bundled_recording(name: str = "qmc5883l_noisy.csv") -> Recording:
+    """:func:`read_recording` of :func:`bundled_recording_path`."""
+    return read_recording(bundled_recording_path(name))
+
+
+# ----------------------------------------------------------------------------------------------
+# public third-party datasets (used by the studies in tools/, never needed at run time)
+# ----------------------------------------------------------------------------------------------
+
+
+def _finish(t, mag, aux, labels, bad, meta, path, what="t") -> Recording:
+    t = np.asarray(t, dtype=np.float64)
+    names = list(aux)
+    cols = [np.asarray(mag, dtype=np.float64)] + [np.asarray(aux[n], dtype=np.float64) for n in names]
+    t, cols, labels = _drop_decreasing(t, cols, np.asarray(labels), bad, what=what)
+    bad.sort(key=lambda b: b[0])
+    return Recording(t=t, mag=cols[0], aux=dict(zip(names, cols[1:])), meta=meta, bad_rows=bad,
+                     path=pathlib.Path(path))
+
+
+def _text_lines(path: pathlib.Path) -> tuple[str, bool]:
+    data, truncated = _read_bytes(path)
+    return _decode(data), truncated
+
+
+def load_qmc5883l_csv(path) -> Recording:
+    """tomisuarez2/MagnetometerCalibration QMC5883L capture (MIT, (c) 2025 Tomas Suarez).
+
+    Three header lines (``Fs,50.00``, ``Initialization time,60``, ``mx,my,mz``) then integer
+    counts. ``t = i / Fs`` with ``i`` the index of the data line (bad lines keep their time slot);
+    ``units.mag = counts``.
+    """
+    path = pathlib.Path(path)
+    text, truncated = _text_lines(path)
+    header_meta: dict[str, str] = {}
+    pos = 0
+    lineno = 0
+    found = False
+    while pos < len(text):
+        end = text.find("\n", pos)
+        end = len(text) if end < 0 else end
+        line = text[pos:end].strip()
+        pos = end + 1
+        lineno += 1
+        if not line:
+            continue
+        if [c.strip() for c in line.split(",")] == ["mx", "my", "mz"]:
+            found = True
+            break
+        key, _, value = line.partition(",")
+        header_meta[key.strip()] = value.strip()
+    if not found:
+        raise RecordingError(f"{path}: no 'mx,my,mz' header line; not a QMC5883L capture of this format")
+    try:
+        fs = float(header_meta["Fs"])
+    except (KeyError, ValueError):
+        raise RecordingError(f"{path}: missing or invalid 'Fs,<rate>' header line") from None
+    if not (math.isfinite(fs) and fs > 0):
+        raise RecordingError(f"{path}: invalid sample rate Fs={fs!r}")
+    first = lineno + 1
+    body = text[pos:] if pos <= len(text) else ""
+    values, linenos, bad = _parse_body(body, first, ["mx", "my", "mz"], [0, 1, 2], truncated)
+    t = (linenos - first) / fs
+    meta = {
+        "source": str(path.name),
+        "sensor": "QMC5883L (GY-273)",
+        "units.mag": "counts",
+        "rate_hz": f"{fs:g}",
+        "origin": "https://github.com/tomisuarez2/MagnetometerCalibration",
+        "licence": "MIT, Copyright (c) 2025 Tomas Suarez",
+    }
+    if "Initialization time" in header_meta:
+        meta["initialization_time"] = header_meta["Initialization time"]
+    return _finish(t, values, {}, linenos, bad, meta, path)
+
+
+def load_ck_explorer_csv(path, nominal_rate_hz: float = 1.0) -> Recording:
+    """CK-Explorer/Magnetometer-and-Accelerometer-Calibration log (Apache-2.0, (c) 2023 CK-Explorer).
+
+    Header ``ax,ay,az,mx,my,mz``; accelerometer in g, magnetometer in gauss-like units; no
+    timestamps and no stated rate, so ``t = index / nominal_rate_hz`` (an ordering, not a clock)
+    and the metadata says the rate is unknown.
+    """
+    path = pathlib.Path(path)
+    text, truncated = _text_lines(path)
+    pos = 0
+    lineno = 0
+    names = None
+    while pos < len(text):
+        end = text.find("\n", pos)
+        end = len(text) if end < 0 else end
+        line = text[pos:end].strip()
+        pos = end + 1
+        lineno += 1
+        if line:
+            names = [c.strip() for c in line.split(",")]
+            break
+    if names is None:
+        raise RecordingError(f"{path}: the file is empty")
+    missing = [c for c in ("mx", "my", "mz") if c not in names]
+    if missing:
+        raise RecordingError(f"{path}: line {lineno}: missing column(s) {', '.join(missing)} in header {names}")
+    first = lineno + 1
+    body = text[pos:] if pos <= len(text) else ""
+    mi = [names.index(c) for c in ("mx", "my", "mz")]
+    values, linenos, bad = _parse_body(body, first, names, mi, truncated)
+    t = (linenos - first) / float(nominal_rate_hz)
+    aux = {n: values[:, j] for j, n in enumerate(names) if n not in ("mx", "my", "mz")}
+    meta = {
+        "source": str(path.name),
+        "sensor": "unknown (CK-Explorer example log)",
+        "units.mag": "G",
+        "units.mag_note": "gauss-like units, not stated upstream",
+        "units.acc": "g",
+        "rate_hz": "unknown",
+        "t": f"sample index / nominal {nominal_rate_hz:g} Hz; the source has no timestamps",
+        "origin": "https://github.com/CK-Explorer/Magnetometer-and-Accelerometer-Calibration",
+        "licence": "Apache-2.0, Copyright 2023 CK-Explorer",
+    }
+    return _finish(t, values[:, mi], aux, linenos, bad, meta, path)
+
+
+def load_cave_survey_json(path) -> Recording:
+    """circuitpython-mag-cal test fixture of a cave-survey device (MIT, Phil Underwood).
+
+    ``shots.mag`` / ``shots.grav`` are flat lists NaN-padded to 256 values; reshaped to (-1, 3),
+    all-NaN rows are padding and are dropped (not bad rows); a partly missing magnetometer shot
+    is a bad row. The accelerometer (in g) goes to ``aux`` ``ax, ay, az``; ``t`` is the shot
+    index (shots are not a time series).
+    """
+    path = pathlib.Path(path)
+    with open(path, encoding="utf-8") as f:
+        doc = json.load(f)
+    shots = doc.get("shots") or {}
+    if "mag" not in shots:
+        raise RecordingError(f"{path}: no shots.mag list; not a circuitpython-mag-cal fixture")
+
+    def triplets(values):
+        a = np.asarray([math.nan if v is None else v for v in values], dtype=np.float64)
+        return a[: a.size // 3 * 3].reshape(-1, 3)
+
+    mag = triplets(shots["mag"])
+    grav = triplets(shots.get("grav", []))
+    n = mag.shape[0]
+    if grav.shape[0] < n:
+        grav = np.vstack([grav, np.full((n - grav.shape[0], 3), math.nan)])
+    grav = grav[:n]
+    present = np.isfinite(mag).any(axis=1) | np.isfinite(grav).any(axis=1)
+    ok = np.isfinite(mag).all(axis=1)
+    bad = [(int(i) + 1, "missing: magnetometer shot is incomplete") for i in np.flatnonzero(present & ~ok)]
+    keep = present & ok
+    idx = np.flatnonzero(keep)
+    meta = {
+        "source": str(path.name),
+        "device": str(doc.get("name", "")),
+        "sensor": "cave-survey device (circuitpython-mag-cal fixture)",
+        "units.mag": "uT",
+        "units.mag_note": "as stored by the device firmware (nominally uT, not stated)",
+        "units.acc": "g",
+        "t": "shot index (not a time series)",
+        "origin": "https://github.com/furbrain/CircuitPython_mag_cal (PyPI circuitpython-mag-cal 1.4.1)",
+        "licence": "MIT, Phil Underwood",
+    }
+    aux = {"ax": grav[idx, 0], "ay": grav[idx, 1], "az": grav[idx, 2]}
+    return _finish(idx.astype(np.float64), mag[idx], aux, idx + 1, bad, meta, path)
+
+
+def _load_broad_arrays(path: pathlib.Path) -> dict:
+    names = ("imu_mag", "imu_acc", "imu_gyr", "movement", "sampling_rate")
+    if path.suffix.lower() in (".hdf5", ".h5"):
+        try:
+            import h5py
+        except ImportError:
+            raise ImportError(f"reading {path.name} needs h5py: pip install h5py "
+                              f"(or use the .mat version of the trial)") from None
+        out = {}
+        with h5py.File(path, "r") as f:
+            for n in names:
+                if n in f:
+                    out[n] = np.asarray(f[n][()])
+                elif n in f.attrs:
+                    out[n] = np.asarray(f.attrs[n])
+        return out
+    from scipy.io import loadmat
+
+    return loadmat(path, variable_names=list(names))
+
+
+def _nx3(a, name, path) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim == 2 and a.shape[1] != 3 and a.shape[0] == 3:
+        a = a.T
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise RecordingError(f"{path}: {name} has shape {a.shape}, expected (N, 3)")
+    return a
+
+
+def load_broad(path) -> Recording:
+    """One BROAD trial (``.mat`` via scipy, ``.hdf5`` via h5py); CC BY 4.0, cite Laidig et al. 2021.
+
+    ``imu_mag`` [uT] -> ``mag``; ``imu_acc`` [m/s^2] -> ``ax, ay, az``; ``imu_gyr`` [rad/s] ->
+    ``gx, gy, gz``; ``movement`` -> aux ``movement`` (1 in motion phases); ``t = i /
+    sampling_rate``. BROAD's magnetometer is already calibrated (|m| ~ 44-50 uT). Samples with a
+    non-finite magnetometer value are bad rows (numbered by 1-based sample index).
+    """
+    path = pathlib.Path(path)
+    d = _load_broad_arrays(path)
+    for n in ("imu_mag", "sampling_rate"):
+        if n not in d:
+            raise RecordingError(f"{path}: no {n!r} variable; not a BROAD trial")
+    mag = _nx3(d["imu_mag"], "imu_mag", path)
+    fs = float(np.asarray(d["sampling_rate"], dtype=np.float64).reshape(-1)[0])
+    n = mag.shape[0]
+    aux = {}
+    for key, cols in (("imu_acc", ("ax", "ay", "az")), ("imu_gyr", ("gx", "gy", "gz"))):
+        if key in d:
+            a = _nx3(d[key], key, path)
+            for j, c in enumerate(cols):
+                aux[c] = a[:, j]
+    if "movement" in d:
+        aux["movement"] = np.asarray(d["movement"], dtype=np.float64).reshape(-1)
+    for k, v in aux.items():
+        if v.shape != (n,):
+            raise RecordingError(f"{path}: {k} has {v.shape[0]} samples, imu_mag has {n}")
+    ok = np.isfinite(mag).all(axis=1)
+    bad = [(int(i) + 1, "non-finite: magnetometer sample is not finite") for i in np.flatnonzero(~ok)]
+    idx = np.flatnonzero(ok)
+    meta = {
+        "source": str(path.name),
+        "trial": path.stem,
+        "sensor": "myon aktos-t",
+        "units.mag": "uT",
+        "units.mag_note": "already calibrated by BROAD",
+        "units.acc": "m/s^2",
+        "units.gyr": "rad/s",
+        "rate_hz": repr(fs),
+        "origin": "https://github.com/dlaidig/broad",
+        "licence": "CC BY 4.0",
+        "citation": ("D. Laidig, M. Caruso, A. Cereatti, T. Seel. BROAD - A Benchmark for Robust "
+                     "Inertial Orientation Estimation. Data 6(7):72, 2021. https://doi.org/10.3390/data6070072"),
+    }
+    t = np.arange(n, dtype=np.float64) / fs
+    return _finish(t[idx], mag[idx], {k: v[idx] for k, v in aux.items()}, idx + 1, bad, meta, path)
+
+
+def load_rasteiro_mat(path) -> Recording:
+    """miguelrasteiro/IMU_dataset MATLAB file (MIT, (c) 2015 Miguel Rasteiro; cite the papers).
+
+    ``SENSmag``/``SENSacc``/``SENSgyro`` (3 x N) raw outputs, ``MATLABtime`` (1 x N) seconds.
+    A dropout (all-zero or all-NaN magnetometer triplet, or accelerometer and gyroscope both
+    all-zero) is a bad row, as is any other non-finite magnetometer value or time and a sample
+    whose time goes backwards; rows are numbered by 1-based sample index.
+    The sensor name is taken from the file name (``LSM9DS0.mat`` ...).
+    """
+    path = pathlib.Path(path)
+    from scipy.io import loadmat
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the files hold MATLAB objects scipy cannot read
+        d = loadmat(path, variable_names=["SENSmag", "SENSacc", "SENSgyro", "MATLABtime"])
+    for n in ("SENSmag", "MATLABtime"):
+        if n not in d:
+            raise RecordingError(f"{path}: no {n!r} variable; not an IMU_dataset file")
+    mag = _nx3(d["SENSmag"], "SENSmag", path)
+    n = mag.shape[0]
+    t = np.asarray(d["MATLABtime"], dtype=np.float64).reshape(-1)
+    if t.shape != (n,):
+        raise RecordingError(f"{path}: MATLABtime has {t.size} samples, SENSmag has {n}")
+    aux = {}
+    acc = _nx3(d["SENSacc"], "SENSacc", path) if "SENSacc" in d else None
+    gyr = _nx3(d["SENSgyro"], "SENSgyro", path) if "SENSgyro" in d else None
+    for a, cols in ((acc, ("ax", "ay", "az")), (gyr, ("gx", "gy", "gz"))):
+        if a is not None:
+            if a.shape[0] != n:
+                raise RecordingError(f"{path}: {cols} have {a.shape[0]} samples, SENSmag has {n}")
+            for j, c in enumerate(cols):
+                aux[c] = a[:, j]
+    bad = []
+    mag_zero = np.all(mag == 0, axis=1)
+    frame_zero = np.zeros(n, dtype=bool)
+    if acc is not None and gyr is not None:
+        frame_zero = np.all(acc == 0, axis=1) & np.all(gyr == 0, axis=1)
+    finite = np.isfinite(mag).all(axis=1) & np.isfinite(t)
+    mag_nan = np.isnan(mag).all(axis=1)
+    for i in range(n):
+        if mag_nan[i]:
+            bad.append((i + 1, "dropout: NaN magnetometer sample"))
+        elif not finite[i]:
+            bad.append((i + 1, "non-finite: magnetometer sample or time is not finite"))
+        elif mag_zero[i]:
+            bad.append((i + 1, "dropout: all-zero magnetometer sample"))
+        elif frame_zero[i]:
+            bad.append((i + 1, "dropout: all-zero accelerometer and gyroscope sample"))
+    ok = finite & ~mag_zero & ~frame_zero
+    idx = np.flatnonzero(ok)
+    meta = {
+        "source": str(path.name),
+        "sensor": path.stem,
+        "units.mag": "raw",
+        "units.mag_note": "sensor output as recorded (LSM9DS0/RM3100 ~uT, MPU9150 scaled raw units)",
+        "units.acc": "raw",
+        "units.gyr": "raw",
+        "rate_hz": "100",
+        "t": "MATLABtime [s]",
+        "origin": "https://github.com/miguelrasteiro/IMU_dataset",
+        "licence": "MIT, Copyright (c) 2015 Miguel Rasteiro",
+    }
+    return _finish(t[idx], mag[idx], {k: v[idx] for k, v in aux.items()}, idx + 1, bad, meta, path,
+                   what="MATLABtime")
