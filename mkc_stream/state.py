@@ -32,6 +32,7 @@ class StreamConfig:
     a: float = -1.0               # fixed truncation bound (> 0), or -1 for a_factor * max|e|
     estep_gtol: float = 1e-7
     fp_tol: float = 1e-12
+    sigma_start: float = 20.0     # bandwidth after a restart (the paper's EM start)
 
     def __post_init__(self):
         if self.n < 1 or self.m < 1:
@@ -60,6 +61,7 @@ class StreamConfig:
         f = np.zeros(K.N_FCFG)
         f[K.F_SIG_LO], f[K.F_SIG_HI], f[K.F_DLO], f[K.F_DHI] = self.sigma_lo, self.sigma_hi, self.d_lo, self.d_hi
         f[K.F_AFAC], f[K.F_FIXED_A], f[K.F_ES_GTOL], f[K.F_FP_TOL] = self.a_factor, self.a, self.estep_gtol, self.fp_tol
+        f[K.F_SIG_START] = self.sigma_start
         return f
 
     def to_dict(self):

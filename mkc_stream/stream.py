@@ -51,6 +51,8 @@ class StreamingMKC:
     """
 
     def __init__(self, n, m=1, window=256, estep_every=32, sigma=None, d=None, theta0=None, **config):
+        if sigma is not None and "sigma_start" not in config:
+            config["sigma_start"] = float(np.max(sigma))
         self.config = StreamConfig(n=n, m=m, window=window, estep_every=estep_every, **config)
         self._sigma0 = np.broadcast_to(np.asarray(DEFAULT_SIGMA_START if sigma is None else sigma, float), (m,)).copy()
         self._d0 = np.broadcast_to(np.asarray(-1.0 if d is None else d, float), (m,)).copy()

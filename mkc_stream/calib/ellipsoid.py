@@ -108,6 +108,39 @@ def check_geometry_of_samples(mag: np.ndarray) -> None:
             "through all three axes, not about one axis only")
 
 
+def sphere_fit(mag: np.ndarray):
+    """Least-squares sphere |m - b|^2 = F^2 as the linear problem |m|^2 = 2 b^T m + k, k = F^2 - |b|^2.
+
+    Well-posed wherever the origin lies (unlike the "= 1" ellipsoid form), hence the embedded
+    peers' first step. Returns (b, F), or None when the fit is not a sphere (F^2 <= 0).
+    """
+    c = mag.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((mag - c) ** 2, axis=1)))) or 1.0
+    m = (mag - c) / scale
+    G = np.column_stack([2 * m, np.ones(len(m))])
+    sol, *_ = np.linalg.lstsq(G, np.sum(m * m, axis=1), rcond=None)
+    b, k = sol[:3], sol[3]
+    F2 = k + b @ b
+    if not (np.isfinite(F2) and F2 > 0):
+        return None
+    return c + scale * b, scale * float(np.sqrt(F2))
+
+
+def robust_sphere_fit(mag: np.ndarray, passes: int = 2, k: float = 3.0):
+    """sphere_fit, then refit without samples whose |m - b| - F exceeds k robust scales (bursts)."""
+    fit = sphere_fit(mag)
+    for _ in range(passes):
+        if fit is None:
+            return None
+        r = np.linalg.norm(mag - fit[0], axis=1) - fit[1]
+        mad = 1.4826 * np.median(np.abs(r - np.median(r)))
+        keep = np.abs(r - np.median(r)) <= k * mad if mad > 0 else np.ones(len(r), bool)
+        if keep.sum() < 8 or keep.all():
+            return fit
+        fit = sphere_fit(mag[keep])
+    return fit
+
+
 @dataclass
 class Normalisation:
     offset: np.ndarray

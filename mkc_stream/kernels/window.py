@@ -15,7 +15,7 @@ the batch M-step on the window, which also wipes the rounding drift of the add/r
 import math
 
 from .._numba import kernel
-from . import OK, NOT_CONVERGED
+from . import OK, NOT_CONVERGED, SINGULAR
 from .estep import estep_channel
 from .linalg import spd_solve
 from .correntropy import weight_exponent_scale
@@ -28,12 +28,12 @@ REJECTED = 6       # the sample had NaN/inf and was not added
 I_N, I_M, I_W, I_K, I_FP_ROUNDS, I_ES_MAX_ITER, I_MIN_SAMPLES = range(7)
 N_ICFG = 7
 # fcfg: float configuration
-F_SIG_LO, F_SIG_HI, F_DLO, F_DHI, F_AFAC, F_FIXED_A, F_ES_GTOL, F_FP_TOL = range(8)
-N_FCFG = 8
+F_SIG_LO, F_SIG_HI, F_DLO, F_DHI, F_AFAC, F_FIXED_A, F_ES_GTOL, F_FP_TOL, F_SIG_START = range(9)
+N_FCFG = 9
 # cnt: int64 counters
 (C_HEAD, C_COUNT, C_SEEN, C_REJECTED, C_ESTEPS, C_SINCE, C_STATUS, C_SINGULAR, C_FP_ITERS,
- C_LAST_SLOT) = range(10)
-N_COUNTERS = 10
+ C_LAST_SLOT, C_RESTARTS) = range(11)
+N_COUNTERS = 11
 # fst: float64 state scalars
 S_COND, S_LAST_F = range(2)
 N_FSTATE = 2
@@ -74,6 +74,7 @@ def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fs
     count = cnt[C_COUNT]
     status = NOT_CONVERGED
     for _ in range(icfg[I_FP_ROUNDS]):
+        wsum = 0.0
         for p in range(n):
             b[p] = 0.0
             tprev[p] = theta[p]
@@ -84,10 +85,16 @@ def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fs
                 r = Y[s, i]
                 for j in range(n):
                     r -= X[s, i, j] * theta[j]
-                c = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i])) * (1.0 / (d[i] * d[i]))
+                w = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i]))
+                wsum += w
+                c = w * (1.0 / (d[i] * d[i]))
                 C[s, i] = c
                 if c != 0.0:
                     row_update(A, b, X[s, i], Y[s, i], c, n)
+        if wsum < n:
+            # fewer effective equations than unknowns: the kernel lost the data (a bad theta)
+            cnt[C_SINGULAR] += 1
+            return SINGULAR
         st, cond = solve_window(A, b, theta, L, D, xs, n)
         fst[S_COND] = cond
         cnt[C_FP_ITERS] += 1
@@ -171,6 +178,19 @@ def initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tpre
 
 
 @kernel
+def restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cnt, fst):
+    """Forget sigma, d and theta and re-initialise from the window (WLS, then Algorithm 1)."""
+    cnt[C_RESTARTS] += 1
+    for i in range(icfg[I_M]):
+        sigma[i] = fcfg[F_SIG_START]
+        d[i] = -1.0
+        Hes[i, 0] = 0.0
+        Hes[i, 1] = 0.0
+        Hes[i, 2] = 0.0
+    return initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+
+
+@kernel
 def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, xk, yk, slot):
     """Feed one sample (xk (m, n), yk (m,)) into window slot `slot` (-1: the ring buffer's head).
 
@@ -224,6 +244,10 @@ def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tpre
         cnt[C_SINCE] = 0
         estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
         st = rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+        if st != OK and st != NOT_CONVERGED:
+            # Recovery: restart Algorithm 3 on the window from WLS and the start bandwidth, so a
+            # stream never stays stuck on a degenerate estimate (its weights would all be ~0).
+            st = restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cnt, fst)
     else:
         st, cond = solve_window(A, b, theta, L, D, xs, n)
         fst[S_COND] = cond

@@ -1,0 +1,273 @@
+"""MagCalibrator: the ellipsoid model fed sample by sample through the streaming MKC-EM.
+
+Keeps a *trial* calibration (the latest E-step checkpoint) and an *accepted* one (the last trial
+that passed the acceptance predicate); apply() uses only the accepted one. Features are the
+ellipsoid's 9 terms of (m - c0)/s0; (c0, s0) follow the trial centre and radius, and when they
+move the window's features are recomputed from the raw samples kept in the state.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+
+import numpy as np
+
+from .._validation import MKCInputError
+from ..kernels import magwindow as MW
+from ..kernels import window as K
+from ..stream import StreamingMKC
+from .acceptance import AcceptanceRules, check
+from .ellipsoid import (EllipsoidError, Normalisation, calibration_from_geometry, geometry_from_theta,
+                        raw_geometry, robust_sphere_fit)
+from .fit import weighted_condition
+from .quality import quality_figures, sphere_coverage
+
+POLICIES = {"fifo": 0, "direction": 1}
+
+
+class NotCalibratedError(RuntimeError):
+    """apply() was called before any calibration was accepted."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    hard_iron: np.ndarray
+    soft_iron: np.ndarray
+    field: float
+    sigma: float
+    d: float
+    quality: dict
+    accepted: bool
+    reason: str
+    samples_seen: int
+    esteps: int
+
+    def apply(self, raw):
+        return (np.asarray(raw, dtype=np.float64) - self.hard_iron) @ self.soft_iron.T
+
+    def to_json(self, counts=None):
+        from .ellipsoid import _num
+
+        return {"hard_iron": [float(v) for v in self.hard_iron],
+                "soft_iron": [[float(v) for v in r] for r in self.soft_iron],
+                "field": float(self.field), "channels": [{"sigma": _num(self.sigma), "d": _num(self.d)}],
+                "quality": {k: _num(v) for k, v in self.quality.items()},
+                "status": "accepted" if self.accepted else "rejected", "reason": None if self.accepted else self.reason,
+                "counts": counts}
+
+
+@dataclass
+class CheckpointEvent:
+    samples_seen: int
+    esteps: int
+    accepted: bool
+    reason: str
+    hard_iron: np.ndarray | None = None
+    field: float | None = None
+    coverage: float | None = None
+    outlier_fraction: float | None = None
+    extra: dict = dc_field(default_factory=dict)
+
+
+class MagCalibrator:
+    """Live magnetometer calibration on a fixed-size, direction-organised window.
+
+    window W, estep_every K: as StreamingMKC. policy: "direction" (default) or "fifo".
+    unit: "uT" enables the physical field-range check. rules: the AcceptanceRules.
+    init_samples: samples gathered before the first normalisation (median centre / radius).
+    """
+
+    #: directions around a sphere fit of the window needed before the final feature normalisation
+    MIN_SPHERE_COVERAGE = 0.4
+    #: consecutive checkpoints without an ellipsoid before the normalisation is redone
+    MAX_FAILED_CHECKPOINTS = 4
+
+    def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=AcceptanceRules(),
+                 init_samples=None, keep_history=True, **stream_kw):
+        if policy not in POLICIES:
+            raise MKCInputError(f"policy must be one of {sorted(POLICIES)}")
+        self.unit = unit
+        self.rules = rules
+        self.policy = policy
+        self.keep_history = keep_history
+        self.stream = StreamingMKC(9, 1, window=window, estep_every=estep_every, **stream_kw)
+        self.init_samples = int(init_samples or min(window, 64))
+        self.reset()
+
+    def reset(self):
+        W = self.stream.config.window
+        self.stream.reset()
+        self.raw = np.zeros((W, 3))
+        self.slot_cell = np.zeros(W, dtype=np.int64)
+        self.slot_age = np.zeros(W, dtype=np.int64)
+        self.cell_count = np.zeros(MW.N_CELLS, dtype=np.int64)
+        self.c0 = np.zeros(3)
+        self.s0 = 0.0
+        self.provisional = True
+        self._failed = 0
+        self._xk = np.zeros((1, 9))
+        self._yk = np.ones(1)
+        self._pending = []
+        self.trial: Calibration | None = None
+        self.accepted: Calibration | None = None
+        self.first_accepted_at: int | None = None
+        self.history: list[CheckpointEvent] = []
+        self.last_reason = "warming up: not enough samples yet"
+        return self
+
+    # -- feeding ---------------------------------------------------------------------------
+    def update(self, mags) -> list:
+        """Feed raw samples (T, 3) or (3,). Returns the checkpoint events they produced."""
+        mags = np.ascontiguousarray(np.atleast_2d(np.asarray(mags, dtype=np.float64)))
+        if mags.ndim != 2 or mags.shape[1] != 3:
+            raise MKCInputError(f"magnetometer samples must have shape (T, 3); got {mags.shape}")
+        if self.s0 <= 0:
+            # gather init_samples finite samples to set the first normalisation (median centre, radius)
+            finite = np.isfinite(mags).all(axis=1)
+            self.stream._st["cnt"][K.C_REJECTED] += int((~finite).sum())
+            good = mags[finite]
+            need = self.init_samples - len(self._pending)
+            self._pending.extend(good[:need])
+            if len(self._pending) < self.init_samples:
+                return []
+            P = np.array(self._pending)
+            self.c0 = np.median(P, axis=0)
+            self.s0 = float(np.median(np.linalg.norm(P - self.c0, axis=1))) or 1.0
+            mags = np.ascontiguousarray(np.concatenate([P, good[need:]]))
+            self._pending = []
+        events = []
+        status = np.empty(mags.shape[0], dtype=np.int8)
+        t = 0
+        st = self.stream._st
+        args = self.stream._args
+        while t < mags.shape[0]:
+            t = MW.mag_learn_many(*args, self.raw, self.slot_cell, self.slot_age, self.cell_count, self.c0,
+                                  np.float64(self.s0), POLICIES[self.policy], mags, t, status, self._xk, self._yk)
+            if st["cnt"][K.C_STATUS] != K.WARMING_UP and (st["cnt"][K.C_SINCE] == 0):
+                events.append(self._checkpoint())
+        return events
+
+    # -- checkpoints -----------------------------------------------------------------------
+    def _window_raw(self):
+        count = int(self.stream._st["cnt"][K.C_COUNT])
+        return self.raw[:count], count
+
+    def _checkpoint(self) -> CheckpointEvent:
+        st = self.stream._st
+        seen, esteps = int(st["cnt"][K.C_SEEN]), int(st["cnt"][K.C_ESTEPS])
+        raw, count = self._window_raw()
+        if self.provisional:
+            # The first normalisation centre came from a few samples, which may all lie on one
+            # patch of the ellipsoid's surface: the "= 1" form of eq. (36) degenerates when the
+            # features' origin is on the ellipsoid. A sphere fit is well-posed anywhere; once the
+            # window's directions around it cover enough of the sphere, re-centre the features
+            # there and restart the estimate.
+            ev = self._try_final_normalisation(raw, seen, esteps)
+            if ev is not None:
+                return ev
+        sigma, d = float(st["sigma"][0]), float(st["d"][0])
+        try:
+            geom = raw_geometry(geometry_from_theta(st["theta"]), Normalisation(self.c0.copy(), self.s0))
+            b, S, F = calibration_from_geometry(geom)
+        except (EllipsoidError, np.linalg.LinAlgError) as exc:
+            self.last_reason = f"trial is not an ellipsoid: {exc}"
+            ev = CheckpointEvent(seen, esteps, False, self.last_reason)
+            if self.keep_history:
+                self.history.append(ev)
+            self._failed += 1
+            if self._failed >= self.MAX_FAILED_CHECKPOINTS:
+                # watchdog: a bad normalisation (features centred on the surface) cannot heal
+                # itself; go back to the sphere-fit normalisation on the current window
+                self.provisional = True
+                self._failed = 0
+            return ev
+        self._failed = 0
+        m_cal = (raw - b) @ S.T
+        w = st["C"][:count, 0] * d * d
+        quality = quality_figures(m_cal, F, weighted_condition(st["X"][:count, 0, :], w))
+        ok, reason = check(quality, F, self.unit, self.rules)
+        cal = Calibration(b, S, F, sigma, d, quality, ok, reason, seen, esteps)
+        self.trial = cal
+        if ok:
+            self.accepted = cal
+            if self.first_accepted_at is None:
+                self.first_accepted_at = seen
+        self.last_reason = "" if ok else reason
+        ev = CheckpointEvent(seen, esteps, ok, reason, b, F, quality["coverage"], quality["outlier_fraction"])
+        if self.keep_history:
+            self.history.append(ev)
+        if ok:                      # only a trustworthy trial may move the feature normalisation
+            self._maybe_renormalise(geom, b, F)
+        return ev
+
+    def _try_final_normalisation(self, raw, seen, esteps):
+        fit = robust_sphere_fit(raw) if len(raw) >= 8 else None
+        cov = 0.0
+        if fit is not None:
+            b, F = fit
+            cov = sphere_coverage(raw - b)
+        if fit is None or cov < self.MIN_SPHERE_COVERAGE:
+            self.last_reason = (f"waiting for orientation coverage ({cov:.0%} of the sphere around a sphere fit "
+                                f"< {self.MIN_SPHERE_COVERAGE:.0%}): rotate the sensor through all axes")
+            ev = CheckpointEvent(seen, esteps, False, self.last_reason)
+            if self.keep_history:
+                self.history.append(ev)
+            return ev
+        self._set_normalisation(b, F, restart=True)
+        self.provisional = False
+        return None
+
+    def _set_normalisation(self, c0, s0, theta=None, restart=False):
+        st = self.stream._st
+        self.c0, self.s0 = np.asarray(c0, dtype=np.float64).copy(), float(s0)
+        count = int(st["cnt"][K.C_COUNT])
+        MW.refeature_window(st["X"], self.raw, count, self.c0, np.float64(self.s0), self._xk)
+        MW.recount_cells(self.raw, count, self.c0, self.slot_cell, self.cell_count)
+        args = (st["icfg"], st["fcfg"], st["X"], st["Y"], st["C"], st["A"], st["b"], st["theta"], st["sigma"], st["d"])
+        if restart:
+            K.restart(*args, st["Hes"], st["L"], st["D"], st["xs"], st["tprev"], st["cnt"], st["fst"])
+            K.estep_window(st["icfg"], st["fcfg"], st["X"], st["Y"], st["theta"], st["sigma"], st["d"], st["a"],
+                           st["Hes"], st["R"], st["ebuf"], st["cnt"], st["fst"])
+            K.rebuild(*args, st["L"], st["D"], st["xs"], st["tprev"], st["cnt"], st["fst"])
+        else:
+            st["theta"][:] = theta
+            K.rebuild(*args, st["L"], st["D"], st["xs"], st["tprev"], st["cnt"], st["fst"])
+
+    def _maybe_renormalise(self, geom, b, F):
+        """Re-centre the features on the trial centre and radius when they drift by > 10%."""
+        if not (np.linalg.norm(b - self.c0) > 0.1 * self.s0 or abs(F / self.s0 - 1.0) > 0.1):
+            return
+        # the trial quadric in the new coordinates: (m - b)^T M (m - b) = 1 -> A' = s^2 M, B' = 0
+        Ap = float(F) ** 2 * geom.M
+        theta = np.array([Ap[0, 0], Ap[1, 1], Ap[2, 2], 2 * Ap[0, 1], 2 * Ap[0, 2], 2 * Ap[1, 2], 0.0, 0.0, 0.0])
+        self._set_normalisation(b, F, theta=theta)
+
+    # -- use -------------------------------------------------------------------------------
+    def apply(self, raw):
+        """Calibrate raw samples with the ACCEPTED calibration only."""
+        if self.accepted is None:
+            raise NotCalibratedError(f"no calibration accepted yet ({self.status_reason()})")
+        return self.accepted.apply(raw)
+
+    def status_reason(self) -> str:
+        if self.s0 <= 0:
+            return f"warming up: {len(self._pending)}/{self.init_samples} samples"
+        snap = self.stream.snapshot()
+        if snap.status == "warming up":
+            return f"warming up: {snap.window_count}/{self.stream.config.effective_min_samples} samples in the window"
+        return self.last_reason or "accepted"
+
+    def weights(self):
+        """(raw samples of the window, their kernel weights): low weight = treated as disturbed."""
+        raw, count = self._window_raw()
+        st = self.stream._st
+        return raw.copy(), st["C"][:count, 0] * st["d"][0] ** 2
+
+    def counts(self):
+        c = self.stream._st["cnt"]
+        return {"samples": int(c[K.C_SEEN] + c[K.C_REJECTED] + len(self._pending)), "bad_frames": int(c[K.C_REJECTED]),
+                "drops": 0, "gaps": 0}
+
+    def nbytes(self) -> int:
+        return self.stream.nbytes() + self.raw.nbytes + self.slot_cell.nbytes + self.slot_age.nbytes + \
+            self.cell_count.nbytes + self.c0.nbytes + 8 + self._xk.nbytes + self._yk.nbytes

@@ -1,0 +1,59 @@
+"""The paper's examples as tests: a small fixed subset in CI, the full Table I under `-m slow`."""
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tools"))
+import reproduce_paper as rp  # noqa: E402
+
+
+def errors(case, runs, names):
+    est = rp.estimator_table(include_peers=False)
+    rng = np.random.default_rng(rp.SEED + 1000 + case)
+    out = {k: [] for k in names}
+    for _ in range(runs):
+        X, Y, th = rp.example2(rng, case)
+        for k in names:
+            out[k].append(np.linalg.norm(est[k](X, Y) - th))
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def test_example2_case2_mkc_em_beats_lad_mkc_and_wls():
+    e = errors(2, 40, ["WLS", "LAD", "MKC", "MKC-EM"])
+    assert e["MKC-EM"].mean() < e["LAD"].mean() and e["MKC-EM"].mean() < e["MKC"].mean()
+    assert e["MKC-EM"].mean() < 0.4 * e["WLS"].mean()
+
+
+def test_example2_case1_gaussian_matches_wls():
+    e = errors(1, 40, ["WLS", "MKC-EM"])
+    assert e["MKC-EM"].mean() < 1.05 * e["WLS"].mean()
+
+
+def test_example1_sigma_sweep_shape():
+    logs, rmse, wls = rp.sigma_sweep(runs=15, n_sigma=9)
+    j = int(np.argmin(rmse))
+    assert 0 < j < len(logs) - 1                  # falls, then rises (Fig. 4, Proposition 1)
+    assert rmse[j] < 0.5 * wls
+    assert rmse[-1] == pytest.approx(wls, rel=0.05)  # coincides with WLS for large sigma (Theorem 1)
+
+
+def test_fig3_mkc_likelihood_never_below_gaussian():
+    lik = rp.likelihood_comparison(N=3000)
+    assert all(a >= b - 1e-9 for a, b in zip(lik["ll_cl"], lik["ll_wls"]))
+    assert lik["ll_cl"][-1] - lik["ll_wls"][-1] > lik["ll_cl"][1] - lik["ll_wls"][1] > 0
+
+
+@pytest.mark.slow
+def test_table1_full_acceptance():
+    """Table I with 200 runs per case (about 4 minutes with every estimator)."""
+    res = rp.table1(200, include_peers=True, oracle=False, progress=False)
+    for case in (1, 2, 3, 5):
+        paper = rp.PAPER_TABLE_I[case][1]["MKC-EM"]
+        assert res[case]["MKC-EM"]["mean"] <= 1.10 * paper, case
+    for case in (1, 2, 3, 4, 5):
+        em = res[case]["MKC-EM"]["mean"]
+        assert em <= res[case]["LAD"]["mean"] and em <= res[case]["MKC"]["mean"] * 1.0001, case
+    assert res[1]["MKC-EM"]["mean"] <= 1.05 * res[1]["WLS"]["mean"]
+    assert res[6]["MKC-EM"]["mean"] < res[6]["LAD"]["mean"]
