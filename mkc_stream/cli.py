@@ -74,6 +74,14 @@ def cmd_calibrate(args) -> int:
         raise UsageError(f"cannot read {args.recording}: {exc}") from exc
     unit = rec.mag_unit
     counts = rec.counts()
+    if args.stream:
+        if args.window < 16 or args.estep_every < 1:
+            raise UsageError("--window must be >= 16 and --estep-every >= 1")
+        obj, accepted = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
+        if args.json:
+            obj["recording"] = str(args.recording)
+            _write_json(obj, args.json)
+        return EXIT_OK if accepted else EXIT_REJECTED
     make_estimator(args.method)          # unknown method -> usage error before any work
     fit, reason = None, ""
     try:
@@ -102,6 +110,74 @@ def cmd_calibrate(args) -> int:
     return EXIT_OK if accepted else EXIT_REJECTED
 
 
+def _stream_calibrate(args, rec, unit, counts, out):
+    """Replay a recording through the streaming calibrator; returns (json_obj, accepted)."""
+    import time
+
+    import numpy as np
+
+    from .calib.streaming import MagCalibrator
+
+    cal = MagCalibrator(window=args.window, estep_every=args.estep_every, unit=unit)
+    cal.update(rec.mag[: min(len(rec.mag), 2 * args.window)])          # compiles the kernels
+    cal.reset()
+    N = len(rec.mag)
+    chunk = max(1000, N // 50)
+    t0 = time.perf_counter()
+    show = (N > 20 * chunk or N > 50_000) and sys.stderr.isatty()
+    for start in range(0, N, chunk):
+        cal.update(rec.mag[start:start + chunk])
+        if show and not args.quiet:
+            done = min(N, start + chunk)
+            state = "accepted" if cal.accepted is not None else cal.status_reason()[:50]
+            print(f"\r  streaming {done}/{N} samples ({done / N:.0%}), {state}", end="", file=sys.stderr, flush=True)
+    if show and not args.quiet:
+        print("", file=sys.stderr)
+    elapsed = time.perf_counter() - t0
+    evolution = [{"samples": ev.samples_seen, "accepted": ev.accepted,
+                  "hard_iron": None if ev.hard_iron is None else [float(v) for v in ev.hard_iron],
+                  "field": None if ev.field is None else float(ev.field),
+                  "coverage": ev.coverage, "reason": ev.reason or None} for ev in cal.history]
+    counts = dict(counts)
+    counts["bad_frames"] += cal.counts()["bad_frames"]
+    acc = cal.accepted
+    if acc is None:
+        obj = {"hard_iron": None, "soft_iron": None, "field": None, "channels": [],
+               "quality": {"residual_rms": None, "coverage": None, "outlier_fraction": None, "condition": None},
+               "status": "rejected", "reason": cal.status_reason(), "counts": counts}
+    else:
+        obj = acc.to_json(counts=counts)
+    obj.update({"method": "mkc-em-stream", "window": args.window, "estep_every": args.estep_every,
+                "first_accepted_at_sample": cal.first_accepted_at, "evolution": evolution,
+                "samples_per_second": N / elapsed if elapsed > 0 else None, "units": {"mag": unit}})
+    if not args.quiet:
+        p = lambda x="": print(x, file=out)  # noqa: E731
+        p(f"mkc-stream calibrate --stream: {args.recording}")
+        p(f"  read          : {counts['samples']} samples, {counts['bad_frames']} bad, window {args.window}, "
+          f"E-step every {args.estep_every}; {N / elapsed:,.0f} samples/s")
+        step = max(1, len(evolution) // 12)
+        p("  evolution     : samples   accepted  hard iron                         field   coverage")
+        for ev in evolution[::step] + ([evolution[-1]] if evolution and (len(evolution) - 1) % step else []):
+            hi = "-" if ev["hard_iron"] is None else "[" + ", ".join(f"{v:9.4g}" for v in ev["hard_iron"]) + "]"
+            fld = "-" if ev["field"] is None else f"{ev['field']:.4g}"
+            cov = "-" if ev["coverage"] is None else f"{ev['coverage']:.0%}"
+            p(f"                  {ev['samples']:8d}  {'yes' if ev['accepted'] else 'no ':3s}       {hi:33s} {fld:7s} {cov}")
+        if acc is None:
+            p(f"  status        : REJECTED - {cal.status_reason()}")
+        else:
+            p(f"  first accepted: after {cal.first_accepted_at} samples")
+            p(f"  hard iron b   : {_fmt_vec(acc.hard_iron, unit)}")
+            for i, row in enumerate(acc.soft_iron):
+                p(("  soft iron S   : " if i == 0 else "                  ") + _fmt_vec(row, ""))
+            p(f"  field F       : {acc.field:.5g} {unit}")
+            p(f"  kernel        : sigma {acc.sigma:.4g}, d {acc.d:.4g}")
+            q = acc.quality
+            p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit}, coverage {q['coverage']:.0%}, "
+              f"outliers {q['outlier_fraction']:.1%}, condition {q['condition']:.3g}")
+            p("  status        : ACCEPTED")
+    return obj, acc is not None
+
+
 def cmd_methods(args) -> int:
     from .calib.fit import available_methods
 
@@ -127,6 +203,9 @@ def build_parser():
     c.add_argument("--json", metavar="PATH", help="write the machine-readable result ('-' for stdout)")
     c.add_argument("--plot", metavar="PNG", help="save a plot of the fit (needs the [plot] extra)")
     c.add_argument("--quiet", action="store_true", help="no human report")
+    c.add_argument("--stream", action="store_true", help="replay through the streaming calibrator (MKC-EM on a window)")
+    c.add_argument("--window", type=int, default=512, help="--stream: samples kept in the window (default 512)")
+    c.add_argument("--estep-every", type=int, default=32, help="--stream: E-step every K samples (default 32)")
     c.set_defaults(func=cmd_calibrate)
 
     m = sub.add_parser("methods", help="list the calibration methods")

@@ -112,3 +112,27 @@ def test_readme_python_example_runs():
     exec(compile(block, "README.md", "exec"), ns)
     assert np.abs(ns["fit"].hard_iron - ns["s"].hard_iron).max() < 0.1
     assert ns["model"].coef_.shape == (2,)
+
+
+def test_calibrate_stream_matches_batch_on_the_bundled_recording(capsys):
+    code, out, _ = run(["calibrate", "demo", "--stream", "--json", "-", "--quiet"], capsys)
+    assert code == 0
+    obj = json.loads(out)
+    assert SPEC_KEYS <= set(obj) and obj["status"] == "accepted"
+    assert obj["first_accepted_at_sample"] > 0 and len(obj["evolution"]) > 100
+    code, out, _ = run(["calibrate", "demo", "--json", "-", "--quiet"], capsys)
+    batch = json.loads(out)
+    # same calibration within 2% of the field (the stream sees a 512-sample window, batch all 22743)
+    assert np.linalg.norm(np.array(obj["hard_iron"]) - batch["hard_iron"]) < 0.02 * batch["field"]
+    assert abs(obj["field"] - batch["field"]) < 0.02 * batch["field"]
+    assert np.abs(np.array(obj["soft_iron"]) - batch["soft_iron"]).max() < 0.03
+
+
+def test_calibrate_stream_rejects_single_axis_rotation(tmp_path, capsys):
+    ang = np.linspace(0, 30 * np.pi, 3000)
+    mag = np.stack([30 * np.cos(ang), 30 * np.sin(ang), np.full_like(ang, 20.0)], 1)
+    path = tmp_path / "flat.csv"
+    write_recording(path, np.arange(3000) / 50, mag + 0.2 * np.random.default_rng(0).normal(size=mag.shape))
+    code, out, _ = run(["calibrate", str(path), "--stream", "--window", "256", "--json", "-", "--quiet"], capsys)
+    obj = json.loads(out)
+    assert code == 1 and obj["status"] == "rejected" and obj["reason"]
