@@ -22,7 +22,9 @@ class StreamConfig:
     window: int = 256             # W: samples kept
     estep_every: int = 32         # K: E-step + rebuild every K samples
     fp_rounds: int = 2            # fixed-point rounds per rebuild (stops early at fp_tol)
-    estep_max_iter: int = 50      # BFGS iterations per channel per E-step
+    # BFGS iterations per channel per E-step. A capped, warm-started E-step is a generalised EM step
+    # (it raises the likelihood; the next checkpoint continues from here), and bounds the cost.
+    estep_max_iter: int = 3
     min_samples: int = 0          # samples before the first solve (0: max(2n, n + 8) equations' worth)
     sigma_lo: float = 0.05
     sigma_hi: float = 1000.0
