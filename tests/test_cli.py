@@ -107,11 +107,14 @@ def test_console_script_and_module_entry_point():
 
 def test_readme_python_example_runs():
     text = (ROOT / "README.md").read_text()
-    block = re.search(r"## Use it from Python\s+```python\n(.*?)```", text, re.S).group(1)
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(blocks) >= 2
     ns = {}
-    exec(compile(block, "README.md", "exec"), ns)
+    for block in blocks:                 # every Python example, in order, in one namespace
+        exec(compile(block, "README.md", "exec"), ns)
     assert np.abs(ns["fit"].hard_iron - ns["s"].hard_iron).max() < 0.1
     assert ns["model"].coef_.shape == (2,)
+    assert np.linalg.norm(ns["cal"].accepted.hard_iron - ns["s"].hard_iron) < 0.3
 
 
 def test_calibrate_stream_matches_batch_on_the_bundled_recording(capsys):
