@@ -47,13 +47,21 @@ def test_fig3_mkc_likelihood_never_below_gaussian():
 
 @pytest.mark.slow
 def test_table1_full_acceptance():
-    """Table I with 200 runs per case (about 4 minutes with every estimator)."""
-    res = rp.table1(200, include_peers=True, oracle=False, progress=False)
-    for case in (1, 2, 3, 5):
-        paper = rp.PAPER_TABLE_I[case][1]["MKC-EM"]
-        assert res[case]["MKC-EM"]["mean"] <= 1.10 * paper, case
+    """Table I with 200 runs per case and every estimator (about 25 minutes on 2 shared cores).
+
+    The paper's MKC-EM means in cases 3 and 4 (0.0380, 0.0418) lie below what the maximum-likelihood
+    estimator that KNOWS the true noise mixture reaches on this setup (0.042, 0.047): no estimator
+    can match them, so there we hold MKC-EM to within 5% of that oracle instead.
+    """
+    res = rp.table1(200, include_peers=True, oracle=True, progress=False)
+    for case in (1, 2, 5):
+        assert res[case]["MKC-EM"]["mean"] <= 1.10 * rp.PAPER_TABLE_I[case][1]["MKC-EM"], case
+    for case in (3, 4):
+        assert res[case]["MKC-EM"]["mean"] <= 1.05 * res[case]["oracle-MLE"]["mean"], case
+        assert res[case]["oracle-MLE"]["mean"] > rp.PAPER_TABLE_I[case][1]["MKC-EM"], case
     for case in (1, 2, 3, 4, 5):
         em = res[case]["MKC-EM"]["mean"]
-        assert em <= res[case]["LAD"]["mean"] and em <= res[case]["MKC"]["mean"] * 1.0001, case
+        assert em <= res[case]["LAD"]["mean"] and em <= res[case]["MKC"]["mean"], case
+        assert em <= 1.03 * res[case]["RLM-Tukey"]["mean"], case      # a tie within Monte Carlo noise
     assert res[1]["MKC-EM"]["mean"] <= 1.05 * res[1]["WLS"]["mean"]
-    assert res[6]["MKC-EM"]["mean"] < res[6]["LAD"]["mean"]
+    assert res[6]["MKC-EM"]["mean"] < res[6]["LAD"]["mean"] and res[6]["MKC-EM"]["mean"] < res[6]["RLM-Tukey"]["mean"]
