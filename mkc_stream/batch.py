@@ -10,7 +10,6 @@ import numpy as np
 
 from ._validation import LinearModelMixin, MKCInputError, as_multichannel, check_full_rank, per_channel
 from .kernels import OK, NOT_CONVERGED, STATUS_TEXT
-from .kernels.correntropy import residuals as _residuals_kernel
 from .kernels.em import mkc_em
 from .kernels.mstep import mstep_fixed_point
 

@@ -61,7 +61,6 @@ def _report(path, rec, fit, accepted, reason, unit, out):
 
 
 def cmd_calibrate(args) -> int:
-    import numpy as np
 
     from .calib.acceptance import check
     from .calib.ellipsoid import EllipsoidError
@@ -114,7 +113,6 @@ def _stream_calibrate(args, rec, unit, counts, out):
     """Replay a recording through the streaming calibrator; returns (json_obj, accepted)."""
     import time
 
-    import numpy as np
 
     from .calib.streaming import MagCalibrator
 

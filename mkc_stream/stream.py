@@ -6,7 +6,6 @@ kernels in kernels/window.py; this class validates shapes and holds the arrays.
 """
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass
 
@@ -159,8 +158,3 @@ class StreamingMKC:
         return (f"StreamingMKC(n={self.config.n}, m={self.config.m}, window={self.config.window}, "
                 f"K={self.config.estep_every}; seen={s.samples_seen}, esteps={s.esteps}, status={s.status!r})")
 
-
-def state_bytes_io(est: StreamingMKC) -> bytes:
-    buf = io.BytesIO()
-    est.save(buf)
-    return buf.getvalue()

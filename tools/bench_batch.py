@@ -33,18 +33,20 @@ def timeit(fn, repeat):
     return {"median_s": float(np.median(ts)), "q25_s": float(np.quantile(ts, 0.25)), "q75_s": float(np.quantile(ts, 0.75))}
 
 
-def startup_times():
-    """Cold (compile) and cached start-up of a first MKC-EM fit, each in a fresh interpreter."""
-    code = ("import time;t=time.perf_counter();import numpy as np;from mkc_stream import MKCRegressor;"
-            "X=np.random.default_rng(0).normal(size=(100,2,2));Y=X.sum(2);MKCRegressor().fit(X,Y);"
-            "print(time.perf_counter()-t)")
-    out = {}
+FIRST_FIT_CODE = ("import time;t=time.perf_counter();import numpy as np;from mkc_stream import MKCRegressor;"
+                  "X=np.random.default_rng(0).normal(size=(100,2,2));Y=X.sum(2);MKCRegressor().fit(X,Y);"
+                  "print(time.perf_counter()-t)")
+
+
+def startup_times(code=FIRST_FIT_CODE, labels=("cold_first_fit_s", "cached_first_fit_s")):
+    """Run `code` twice in fresh interpreters sharing an empty Numba cache: compile, then cached start."""
     import os
     import tempfile
 
+    out = {}
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        for label in ("cold_first_fit_s", "cached_first_fit_s"):
+        for label in labels:
             r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
             out[label] = float(r.stdout.strip().splitlines()[-1])
     return out

@@ -19,16 +19,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
-import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 
 from mkc_stream import MKCRegressor  # noqa: E402
 from mkc_stream.calib.ellipsoid import design_matrix, normalisation_for  # noqa: E402
@@ -106,16 +104,12 @@ def batch_per_sample(X, Y, W, samples=200):
 
 
 def startup():
+    from bench_batch import startup_times
+
     code = ("import time;t=time.perf_counter();import numpy as np;from mkc_stream.stream import StreamingMKC;"
             "e=StreamingMKC(9,1,256,32);r=np.random.default_rng(0);X=r.normal(size=(600,1,9));"
             "e.learn_many(X,X.sum(2));print(time.perf_counter()-t)")
-    out = {}
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        for label in ("compile_s", "cached_start_s"):
-            r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
-            out[label] = float(r.stdout.strip().splitlines()[-1])
-    return out
+    return startup_times(code, ("compile_s", "cached_start_s"))
 
 
 def main(argv=None):
