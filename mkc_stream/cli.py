@@ -15,7 +15,7 @@ class UsageError(Exception):
     """A problem with the user's input: printed as one clear line, exit code 2."""
 
 
-def _write_json(obj, dest):
+def write_json(obj, dest):
     text = json.dumps(obj, indent=2, allow_nan=False)
     if dest == "-":
         sys.stdout.write(text + "\n")
@@ -79,7 +79,7 @@ def cmd_calibrate(args) -> int:
         obj, accepted = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
         if args.json:
             obj["recording"] = str(args.recording)
-            _write_json(obj, args.json)
+            write_json(obj, args.json)
         return EXIT_OK if accepted else EXIT_REJECTED
     make_estimator(args.method)          # unknown method -> usage error before any work
     fit, reason = None, ""
@@ -105,7 +105,7 @@ def cmd_calibrate(args) -> int:
             obj["units"] = {"mag": unit}
             obj["n_iter"] = int(getattr(fit.estimator, "n_iter_", 0) or 0)
         obj["recording"] = str(args.recording)
-        _write_json(obj, args.json)
+        write_json(obj, args.json)
     return EXIT_OK if accepted else EXIT_REJECTED
 
 
@@ -211,6 +211,13 @@ def build_parser():
 
     d = sub.add_parser("demo-path", help="print the path of the bundled real recording")
     d.set_defaults(func=cmd_demo_path)
+
+    import importlib
+
+    from .commands import COMMAND_MODULES
+
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
     return p
 
 
