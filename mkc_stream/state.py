@@ -12,7 +12,7 @@ import numpy as np
 
 from .kernels import window as K
 
-STATE_VERSION = 1
+STATE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -21,10 +21,14 @@ class StreamConfig:
     m: int = 1                    # residual channels
     window: int = 256             # W: samples kept
     estep_every: int = 32         # K: E-step + rebuild every K samples
-    fp_rounds: int = 2            # fixed-point rounds per rebuild (stops early at fp_tol)
+    # Fixed-point rounds per rebuild (stops early at fp_tol). One round per checkpoint: the
+    # windows of consecutive checkpoints overlap by W - K samples, so the stream keeps iterating
+    # Algorithm 1 across checkpoints; a second round costs as much as the E-step.
+    fp_rounds: int = 1
     # BFGS iterations per channel per E-step. A capped, warm-started E-step is a generalised EM step
     # (it raises the likelihood; the next checkpoint continues from here), and bounds the cost.
     estep_max_iter: int = 3
+    refactor_every: int = 0       # tracking steps between Cholesky refreshes (0: min(K, max(1, W // 8)))
     min_samples: int = 0          # samples before the first solve (0: max(2n, n + 8) equations' worth)
     sigma_lo: float = 0.05
     sigma_hi: float = 1000.0
@@ -53,10 +57,17 @@ class StreamConfig:
         need = -(-max(2 * self.n, self.n + 8) // self.m)      # ceil: equations, not samples
         return min(need, self.window)
 
+    @property
+    def effective_refactor_every(self) -> int:
+        if self.refactor_every > 0:
+            return self.refactor_every
+        return min(self.estep_every, max(1, self.window // 8))
+
     def icfg(self):
         a = np.zeros(K.N_ICFG, dtype=np.int64)
         a[K.I_N], a[K.I_M], a[K.I_W], a[K.I_K] = self.n, self.m, self.window, self.estep_every
         a[K.I_FP_ROUNDS], a[K.I_ES_MAX_ITER], a[K.I_MIN_SAMPLES] = self.fp_rounds, self.estep_max_iter, self.effective_min_samples
+        a[K.I_REFACTOR] = self.effective_refactor_every
         return a
 
     def fcfg(self):

@@ -6,11 +6,17 @@ the C struct). No kernel allocates.
 Numerical form. The window's weighted normal equations A theta = b (eq. (15)) are sums of
 per-row terms c x x^T with c = w / d^2. Each ring-buffer slot stores the c it added, so that
 replacing a sample subtracts exactly what it added, whatever sigma/d have become since. theta is
-re-solved every sample by an equilibrated Cholesky factorisation of A (n <= 16: ~n^3/6 flops,
-cheaper and safer than downdating A^-1, which loses positive definiteness). Every K samples the
-E-step (Algorithm 2) runs on the window's residuals, warm-started from the current (sigma, d),
-and A, b are rebuilt from the buffer with the new weights by fixed-point rounds (Algorithm 1):
-the batch M-step on the window, which also wipes the rounding drift of the add/remove updates.
+tracked every sample in O(n^2): one step of iterative refinement with the last equilibrated
+Cholesky factor of A, theta += A_f^-1 (b - A theta). Between two factorisations A changes by a
+few rank-one terms out of W, so A_f^-1 A is close to I and each step removes most of the error
+(and all of it once the window stops changing). The factor is refreshed every `refactor` samples
+(<= K, <= W/8), at every checkpoint, and whenever a step is not small; a fresh factorisation of
+a 9x9 A costs more than the step but is still cheap, and is safer than downdating A^-1 or a
+Cholesky factor, which loses positive definiteness. Every K samples the E-step (Algorithm 2)
+runs on the window's residuals, warm-started from the current (sigma, d), and A, b are rebuilt
+from the buffer with the new weights by fixed-point rounds (Algorithm 1): the batch M-step on
+the window, which also wipes the rounding drift of the add/remove updates. At a checkpoint
+theta is therefore the exact batch solution; in between it is the tracked one.
 """
 import math
 
@@ -25,15 +31,19 @@ WARMING_UP = 5     # fewer than min_samples in the window: theta not solved yet
 REJECTED = 6       # the sample had NaN/inf and was not added
 
 # icfg: integer configuration
-I_N, I_M, I_W, I_K, I_FP_ROUNDS, I_ES_MAX_ITER, I_MIN_SAMPLES = range(7)
-N_ICFG = 7
+I_N, I_M, I_W, I_K, I_FP_ROUNDS, I_ES_MAX_ITER, I_MIN_SAMPLES, I_REFACTOR = range(8)
+N_ICFG = 8
 # fcfg: float configuration
 F_SIG_LO, F_SIG_HI, F_DLO, F_DHI, F_AFAC, F_FIXED_A, F_ES_GTOL, F_FP_TOL, F_SIG_START = range(9)
 N_FCFG = 9
 # cnt: int64 counters
 (C_HEAD, C_COUNT, C_SEEN, C_REJECTED, C_ESTEPS, C_SINCE, C_STATUS, C_SINGULAR, C_FP_ITERS,
- C_LAST_SLOT, C_RESTARTS) = range(11)
-N_COUNTERS = 11
+ C_LAST_SLOT, C_RESTARTS, C_FACTOR_AGE, C_FACTORS) = range(13)
+N_COUNTERS = 13
+# C_FACTOR_AGE: samples since L, D were factored from A (-1: no valid factor)
+# C_FACTORS: factorisations done (checkpoints, refreshes and fall-backs)
+REFINE_MAX_STEP = 0.25   # a tracking step larger than this share of |theta| means: refactor
+
 # fst: float64 state scalars
 S_COND, S_LAST_F = range(2)
 N_FSTATE = 2
@@ -50,16 +60,59 @@ def row_update(A, b, x, y, c, n):
 
 
 @kernel
-def solve_window(A, b, theta, L, D, xs, n):
-    """Mirror A's lower triangle and solve A theta = b; theta is kept if A is singular."""
+def solve_window(A, b, theta, L, D, xs, n, cnt):
+    """Mirror A's lower triangle and solve A theta = b; theta is kept if A is singular.
+
+    L, D then hold the factor the per-sample tracking steps use (age 0), or are marked invalid.
+    """
     for p in range(n):
         for q in range(p + 1, n):
             A[p, q] = A[q, p]
     st, cond = spd_solve(A, b, xs, L, D, n)
+    cnt[C_FACTORS] += 1
     if st == OK:
         for j in range(n):
             theta[j] = xs[j]
+        cnt[C_FACTOR_AGE] = 0
+    else:
+        cnt[C_FACTOR_AGE] = -1
     return st, cond
+
+
+@kernel
+def refine_theta(A, b, theta, L, D, xs, n):
+    """One refinement step theta += (D L L^T D)^-1 (b - A theta) with the stored factor (O(n^2)).
+
+    Uses A's lower triangle only. Returns False (theta untouched) if the step is not finite or
+    larger than REFINE_MAX_STEP |theta|: the factor is too stale, the caller refactors.
+    """
+    # r = D (b - A theta): the equilibrated residual; forward solve L z = r into xs
+    for p in range(n):
+        s = b[p]
+        for q in range(p + 1):
+            s -= A[p, q] * theta[q]
+        for q in range(p + 1, n):
+            s -= A[q, p] * theta[q]
+        s *= D[p]
+        for k in range(p):
+            s -= L[p, k] * xs[k]
+        xs[p] = s * L[p, p]
+    for i in range(n - 1, -1, -1):
+        s = xs[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * xs[k]
+        xs[i] = s * L[i, i]
+    step = 0.0
+    size = 0.0
+    for j in range(n):
+        xs[j] *= D[j]
+        step = max(step, abs(xs[j]))
+        size = max(size, abs(theta[j]))
+    if not (step <= REFINE_MAX_STEP * size):      # also catches NaN
+        return False
+    for j in range(n):
+        theta[j] += xs[j]
+    return True
 
 
 @kernel
@@ -69,11 +122,18 @@ def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fs
     Each round: weights at the current theta -> A, b from scratch (C records each row's c) ->
     solve. Stops when ||theta_new - theta|| <= fp_tol ||theta||. Returns the status.
     """
+    return rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, C, False)
+
+
+@kernel
+def rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, have_r):
+    """rebuild(); have_r: R already holds the residuals at theta (the E-step just computed
+    them with the same loop), so the first round skips that pass. Bitwise the same result."""
     n = icfg[I_N]
     m = icfg[I_M]
     count = cnt[C_COUNT]
     status = NOT_CONVERGED
-    for _ in range(icfg[I_FP_ROUNDS]):
+    for rnd in range(icfg[I_FP_ROUNDS]):
         wsum = 0.0
         for p in range(n):
             b[p] = 0.0
@@ -82,9 +142,12 @@ def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fs
                 A[p, q] = 0.0
         for s in range(count):
             for i in range(m):
-                r = Y[s, i]
-                for j in range(n):
-                    r -= X[s, i, j] * theta[j]
+                if have_r and rnd == 0:
+                    r = R[s, i]
+                else:
+                    r = Y[s, i]
+                    for j in range(n):
+                        r -= X[s, i, j] * theta[j]
                 w = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i]))
                 wsum += w
                 c = w * (1.0 / (d[i] * d[i]))
@@ -94,8 +157,9 @@ def rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fs
         if wsum < n:
             # fewer effective equations than unknowns: the kernel lost the data (a bad theta)
             cnt[C_SINGULAR] += 1
+            cnt[C_FACTOR_AGE] = -1         # L, D belong to an A that no longer exists
             return SINGULAR
-        st, cond = solve_window(A, b, theta, L, D, xs, n)
+        st, cond = solve_window(A, b, theta, L, D, xs, n, cnt)
         fst[S_COND] = cond
         cnt[C_FP_ITERS] += 1
         if st != OK:
@@ -159,7 +223,7 @@ def initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tpre
         for i in range(m):
             wd = 1.0 * (1.0 / (d[i] * d[i])) if d[i] > 0.0 else 1.0
             row_update(A, b, X[s, i], Y[s, i], wd, n)
-    st, cond = solve_window(A, b, theta, L, D, xs, n)
+    st, cond = solve_window(A, b, theta, L, D, xs, n, cnt)
     fst[S_COND] = cond
     if st != OK:
         cnt[C_SINGULAR] += 1
@@ -190,7 +254,7 @@ def restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cn
     return initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
 
 
-@kernel
+@kernel(inline='always')
 def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, xk, yk, slot):
     """Feed one sample (xk (m, n), yk (m,)) into window slot `slot` (-1: the ring buffer's head).
 
@@ -243,16 +307,21 @@ def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tpre
     if cnt[C_SINCE] >= icfg[I_K]:
         cnt[C_SINCE] = 0
         estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
-        st = rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+        st = rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, True)
         if st != OK and st != NOT_CONVERGED:
             # Recovery: restart Algorithm 3 on the window from WLS and the start bandwidth, so a
             # stream never stays stuck on a degenerate estimate (its weights would all be ~0).
             st = restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cnt, fst)
     else:
-        st, cond = solve_window(A, b, theta, L, D, xs, n)
-        fst[S_COND] = cond
-        if st != OK:
-            cnt[C_SINGULAR] += 1
+        st = OK
+        age = cnt[C_FACTOR_AGE]
+        if age >= 0 and age < icfg[I_REFACTOR] and refine_theta(A, b, theta, L, D, xs, n):
+            cnt[C_FACTOR_AGE] = age + 1
+        else:
+            st, cond = solve_window(A, b, theta, L, D, xs, n, cnt)
+            fst[S_COND] = cond
+            if st != OK:
+                cnt[C_SINGULAR] += 1
     cnt[C_STATUS] = st
     return st
 
