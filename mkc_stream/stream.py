@@ -102,6 +102,9 @@ class StreamingMKC:
     # -- learning --------------------------------------------------------------------------
     def _shape_one(self, x, y):
         n, m = self.config.n, self.config.m
+        if (type(x) is np.ndarray and type(y) is np.ndarray and x.dtype == np.float64 and y.dtype == np.float64
+                and x.shape == (m, n) and y.shape == (m,)):
+            return x, y               # the per-sample fast path: no conversion, no copy
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         if x.size != m * n or y.size != m:

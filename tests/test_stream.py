@@ -5,12 +5,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from mkc_stream.batch import wls_solve
 from mkc_stream.kernels import window as K
-from mkc_stream.kernels.correntropy import residuals
-from mkc_stream.kernels.estep import estep_channel
-from mkc_stream.kernels.mstep import mstep_fixed_point
 from mkc_stream.stream import StreamingMKC
+from mkc_stream.verify import batch_checkpoint, capture
 
 
 def linear_stream(seed, T=3000, n=4, m=2, outlier=0.15):
@@ -23,30 +20,6 @@ def linear_stream(seed, T=3000, n=4, m=2, outlier=0.15):
     return X, Y, theta
 
 
-def batch_checkpoint(est, pre):
-    """What the batch solvers give on the window the stream holds, from the stream's warm start."""
-    st = est._st
-    cfg = est.config
-    count = int(st["cnt"][K.C_COUNT])
-    X, Y = st["X"][:count], st["Y"][:count]
-    theta = pre["theta"].copy()
-    sigma, d, H = pre["sigma"].copy(), pre["d"].copy(), pre["Hes"].copy()
-    N, m, n = X.shape
-    ws = [np.empty((N, m)), np.empty((N, m)), np.empty((n, n)), np.empty(n), np.empty(n), np.zeros((n, n)), np.empty(n)]
-    if pre["esteps"] == 0:   # initialisation: WLS, then Algorithm 1 at the start (sigma, d)
-        theta, _ = wls_solve(X, Y, d)
-        mstep_fixed_point(X, Y, sigma, d, theta, cfg.fp_rounds, cfg.fp_tol, *ws)
-    R = np.empty((N, m))
-    residuals(X, Y, theta, R)        # the kernels' own loop order: bitwise the stream's residuals
-    for i in range(m):
-        a = cfg.a_factor * np.abs(R[:, i]).max()
-        s, dd, F, its, stt = estep_channel(R[:, i].copy(), count, a, sigma[i], d[i], cfg.sigma_lo, cfg.sigma_hi,
-                                           cfg.d_lo * a, cfg.d_hi * a, cfg.estep_max_iter, cfg.estep_gtol, H[i])
-        sigma[i], d[i] = s, dd
-    mstep_fixed_point(X, Y, sigma, d, theta, cfg.fp_rounds, cfg.fp_tol, *ws)
-    return theta, sigma, d
-
-
 @pytest.mark.parametrize("seed,W,Kk", [(0, 64, 8), (1, 128, 32), (2, 256, 16)])
 def test_streaming_equals_batch_at_every_checkpoint(seed, W, Kk):
     X, Y, theta_true = linear_stream(seed, T=1500)
@@ -55,8 +28,7 @@ def test_streaming_equals_batch_at_every_checkpoint(seed, W, Kk):
     worst = 0.0
     for k in range(X.shape[0]):
         st = est._st
-        pre = {"theta": st["theta"].copy(), "sigma": st["sigma"].copy(), "d": st["d"].copy(), "Hes": st["Hes"].copy(),
-               "esteps": int(st["cnt"][K.C_ESTEPS])}
+        pre = capture(est)
         est.learn_one(X[k], Y[k])
         if st["cnt"][K.C_ESTEPS] > pre["esteps"]:
             th_b, s_b, d_b = batch_checkpoint(est, pre)

@@ -197,6 +197,14 @@ def estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst):
             amax = max(amax, abs(R[s, i]))
             ymax = max(ymax, abs(Y[s, i]))
         ai = fcfg[F_FIXED_A] if fcfg[F_FIXED_A] > 0.0 else max(fcfg[F_AFAC] * amax, 1e-12 * (1.0 + ymax))
+        if not (0.5 * a[i] <= ai <= 2.0 * a[i]):
+            # The truncation bound moved by more than 2x (a burst entered or left the window): the
+            # objective's landscape moved with it, and the curvature learnt in the old regime
+            # (e.g. ~1e6 along log sigma in the flat Gaussian regime) would throw the first step
+            # to the box edge. Start this E-step from the default curvature.
+            Hes[i, 0] = 0.0
+            Hes[i, 1] = 0.0
+            Hes[i, 2] = 0.0
         a[i] = ai
         s_new, d_new, F, its, st = estep_channel(ebuf, count, ai, sigma[i], d[i], fcfg[F_SIG_LO], fcfg[F_SIG_HI],
                                                  fcfg[F_DLO] * ai, fcfg[F_DHI] * ai, icfg[I_ES_MAX_ITER],
