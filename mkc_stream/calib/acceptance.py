@@ -24,10 +24,21 @@ class AcceptanceRules:
     # peers tuned for quiet sensors.
     max_residual_rel: float = 0.10
     field_range_ut: tuple = EARTH_FIELD_UT # checked only when the unit is known to be uT
+    # Streaming only: before a new calibration is accepted, a cold start (WLS, then MKC-EM) on the
+    # same window must agree with the warm-started trial, hard iron and field within this fraction
+    # of the field. A warm-started estimate can lock onto a wrong mode that it reinforces (the
+    # samples it down-weights are exactly the ones that would correct it); a cold start cannot
+    # inherit that. Agreement is ~0.1% of F when both are right.
+    max_disagreement_rel: float = 0.02
 
 
-def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules()):
-    """Return (accepted, reason); reason is '' when accepted, else every failed criterion."""
+def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),
+          disagreement=None):
+    """Return (accepted, reason); reason is '' when accepted, else every failed criterion.
+
+    disagreement: the streaming calibrator's cold-start check, max(|b - b_cold|, |F - F_cold|) in
+    the unit of the field (None: not checked).
+    """
     fails = []
     cov = quality.get("coverage", 0.0)
     if not cov >= rules.min_coverage:
@@ -47,4 +58,7 @@ def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules 
             fails.append(f"fitted field {field:.1f} uT outside the physical range [{lo:g}, {hi:g}] uT")
     elif not (np.isfinite(field) and field > 0):
         fails.append(f"fitted field {field} is not a positive number")
+    if disagreement is not None and not disagreement <= rules.max_disagreement_rel * abs(field):
+        fails.append(f"not confirmed: a cold start on the same window differs by {disagreement:.3g} "
+                     f"(> {rules.max_disagreement_rel:.0%} of the field); continuing from the cold start")
     return (not fails), "; ".join(fails)

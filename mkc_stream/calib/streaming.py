@@ -81,6 +81,10 @@ class MagCalibrator:
     MIN_SPHERE_COVERAGE = 0.4
     #: consecutive checkpoints without an ellipsoid before the normalisation is redone
     MAX_FAILED_CHECKPOINTS = 4
+    #: consecutive trials that do not fit (fit error or outlier gate) before the estimate restarts
+    MAX_MISFIT_TRIALS = 8
+    #: E-step + fixed-point rounds of the cold start that confirms a new calibration (batch: 10)
+    COLD_START_ROUNDS = 10
 
     def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=AcceptanceRules(),
                  init_samples=None, keep_history=True, **stream_kw):
@@ -105,6 +109,8 @@ class MagCalibrator:
         self.s0 = 0.0
         self.provisional = True
         self._failed = 0
+        self._misfit = 0
+        self._confirmed = None
         self._xk = np.zeros((1, 9))
         self._yk = np.ones(1)
         self._pending = []
@@ -186,6 +192,20 @@ class MagCalibrator:
         w = st["C"][:count, 0] * d * d
         quality = quality_figures(m_cal, F, weighted_condition(st["X"][:count, 0, :], w))
         ok, reason = check(quality, F, self.unit, self.rules)
+        if ok and self._needs_confirmation(b, F):
+            disagreement, cold = self._cold_start_disagreement(raw, b, F)
+            ok, reason = check(quality, F, self.unit, self.rules, disagreement=disagreement)
+            if ok:
+                self._confirmed = (b, F)
+            elif cold is not None:
+                b, S, F, quality, sigma, d = cold       # report (and continue from) the cold start
+        # Watchdog: trials that keep failing the fit gates mean the estimate no longer fits the
+        # window (e.g. a wrong mode after a disturbance): redo the normalisation and restart.
+        misfit = not ok and ("fit error" in reason or "outlier fraction" in reason)
+        self._misfit = self._misfit + 1 if misfit else 0
+        if self._misfit >= self.MAX_MISFIT_TRIALS:
+            self._misfit = 0
+            self.provisional = True
         cal = Calibration(b, S, F, sigma, d, quality, ok, reason, seen, esteps)
         self.trial = cal
         if ok:
@@ -199,6 +219,40 @@ class MagCalibrator:
         if ok:                      # only a trustworthy trial may move the feature normalisation
             self._maybe_renormalise(geom, b, F)
         return ev
+
+    def _needs_confirmation(self, b, F) -> bool:
+        """A trial that passes the gates is confirmed by a cold start unless it is the calibration
+        confirmed last (within the disagreement tolerance): steady streams pay nothing."""
+        if self._confirmed is None:
+            return True
+        b0, F0 = self._confirmed
+        tol = self.rules.max_disagreement_rel * abs(F)
+        return not (np.linalg.norm(b - b0) <= tol and abs(F - F0) <= tol)
+
+    def _cold_start_disagreement(self, raw, b, F):
+        """Run batch MKC-EM from scratch on the window (in the stream's own state, by the kernels).
+
+        Returns (disagreement, cold): if the cold start agrees, the warm state is restored
+        (nothing changes); otherwise the stream continues from the cold start, and `cold` is its
+        (b, S, F, quality, sigma, d) - or None if the cold start gave no ellipsoid.
+        """
+        st = self.stream._st
+        saved = {k: v.copy() for k, v in st.items()}
+        K.cold_start(*self.stream._args, self.COLD_START_ROUNDS)
+        try:
+            geom = raw_geometry(geometry_from_theta(st["theta"]), Normalisation(self.c0.copy(), self.s0))
+            bc, Sc, Fc = calibration_from_geometry(geom)
+        except (EllipsoidError, np.linalg.LinAlgError):
+            return np.inf, None
+        disagreement = max(float(np.linalg.norm(bc - b)), abs(Fc - F))
+        if disagreement <= self.rules.max_disagreement_rel * abs(F):
+            for k, v in st.items():
+                v[...] = saved[k]
+            return disagreement, None
+        count = raw.shape[0]
+        dc = float(st["d"][0])
+        qc = quality_figures((raw - bc) @ Sc.T, Fc, weighted_condition(st["X"][:count, 0, :], st["C"][:count, 0] * dc * dc))
+        return disagreement, (bc, Sc, Fc, qc, float(st["sigma"][0]), dc)
 
     def _try_final_normalisation(self, raw, seen, esteps):
         fit = robust_sphere_fit(raw) if len(raw) >= 8 else None

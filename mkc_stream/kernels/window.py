@@ -262,6 +262,19 @@ def restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cn
     return initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
 
 
+@kernel
+def cold_start(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, rounds):
+    """Batch MKC-EM (Algorithm 3) on the window from scratch: restart() (WLS, then Algorithm 1 at
+    the start bandwidth), then `rounds` E-step + fixed-point rounds. Returns the last status."""
+    st = restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cnt, fst)
+    for _ in range(rounds):
+        if st != OK and st != NOT_CONVERGED:
+            return st
+        estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
+        st = rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, True)
+    return st
+
+
 @kernel(inline='always')
 def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, xk, yk, slot):
     """Feed one sample (xk (m, n), yk (m,)) into window slot `slot` (-1: the ring buffer's head).
