@@ -5,4 +5,5 @@ Each module listed here defines ``register(subparsers)``, which adds its parsers
 :mod:`mkc_stream.cli`; import them inside the command functions.
 """
 COMMAND_MODULES: list[str] = [
+    "mkc_stream.commands.ingest",
 ]

@@ -1,0 +1,453 @@
+"""``record``, ``live`` and ``replay``: ingest from serial ports, CAN buses and logs.
+
+    mkc-stream live --port /dev/ttyACM0 --protocol motioncal --out rec.csv
+    mkc-stream live -i socketcan -c can0 --can-id 0x110 --duration 60 --json -
+    mkc-stream record --port /dev/ttyUSB0 --baud 921600 --protocol binary --out rec.csv
+    mkc-stream replay rec.csv --realtime
+    mkc-stream replay log.mf4 --dbc imu.dbc --map mx=MagX,my=MagY,mz=MagZ
+
+Heavy imports (numpy, numba, python-can, pyserial) happen inside the command functions.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import math
+import shutil
+import sys
+
+EPILOG_SOURCE = ("SOURCE is --port PORT [--baud B] --protocol P for a serial port (PORT a device path or a "
+                 "pyserial URL such as socket://host:port), or python-can's -i/--interface, -c/--channel, "
+                 "-b/--bitrate [--bus-kwargs K=V ...] with --can-id ID or --dbc FILE --map COL=SIGNAL,... "
+                 "for a CAN bus.")
+
+
+# ----------------------------------------------------------------------------------------------
+# parsers
+# ----------------------------------------------------------------------------------------------
+
+
+def _int0(text):
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer (decimal or 0x...)") from None
+
+
+def _add_decoding(p):
+    g = p.add_argument_group("CAN frame decoding")
+    g.add_argument("--can-id", type=_int0, help="arbitration id of the built-in frame layout (default 0x110)")
+    g.add_argument("--dbc", metavar="FILE", help="decode frames through this DBC file (needs the [can-dbc] extra)")
+    g.add_argument("--map", action="append", metavar="COL=[MSG.]SIGNAL[*SCALE],...",
+                   help="with --dbc: which signals are mx, my, mz (required) and other columns")
+
+
+def _add_source(p):
+    from ..ingest.protocols import ALIASES, PROTOCOLS
+
+    g = p.add_argument_group("serial source")
+    g.add_argument("--port", help="serial device path or pyserial URL (loop://, socket://host:port, ...)")
+    g.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
+    g.add_argument("--protocol", choices=sorted(PROTOCOLS) + sorted(ALIASES), metavar="P",
+                   help="serial protocol: " + "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items()))
+    g.add_argument("--columns", help="--protocol csv: the header, when the device printed it before the port opened")
+    g.add_argument("--reconnect", action="store_true", help="reopen a port that disappears instead of ending the run")
+    # python-can's own flag names (can.cli.add_bus_arguments), declared here because importing
+    # python-can costs more than half a second for every mkc-stream command
+    b = p.add_argument_group("CAN source (python-can's flags)")
+    b.add_argument("-i", "--interface", default=argparse.SUPPRESS,
+                   help="python-can interface: socketcan, slcan, virtual, pcan, kvaser, vector, ...")
+    b.add_argument("-c", "--channel", default=argparse.SUPPRESS,
+                   help="python-can channel: can0, vcan0, /dev/ttyACM0 (slcan), a virtual channel name, ...")
+    b.add_argument("-b", "--bitrate", type=int, default=argparse.SUPPRESS, help="CAN bitrate, e.g. 500000")
+    b.add_argument("--fd", action="store_true", default=argparse.SUPPRESS, help="CAN FD")
+    b.add_argument("--data-bitrate", type=int, default=argparse.SUPPRESS, help="CAN FD data-phase bitrate")
+    b.add_argument("--bus-kwargs", nargs="+", default=argparse.SUPPRESS, metavar="KEY=VALUE",
+                   help="more keyword arguments for can.Bus, e.g. sleep_after_open=0 tty_baudrate=921600")
+    _add_decoding(p)
+    p.add_argument("--raw-out", metavar="FILE",
+                   help="CAN: also write every raw frame with python-can's writer for this suffix "
+                        "(.log, .asc, .blf, .trc); record defaults to the --out name with .log")
+
+
+def _add_run(p, what="live"):
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--max-samples", type=int, metavar="N", help="stop after N samples")
+    g.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (" + ("sample time" if what == "replay" else "wall clock") + ")")
+    p.add_argument("--progress", action="store_true", help="show the status line even when stderr is not a terminal")
+    p.add_argument("--json", metavar="PATH", help="write the machine-readable result ('-' for stdout)")
+    p.add_argument("--quiet", action="store_true", help="no human report")
+
+
+def _add_calib(p):
+    p.add_argument("--window", type=int, default=512, help="samples kept in the calibration window (default 512)")
+    p.add_argument("--estep-every", type=int, default=32, help="E-step every K samples (default 32)")
+
+
+def register(subparsers):
+    lv = subparsers.add_parser("live", help="calibrate live from a serial or CAN IMU",
+                               description="Calibrate live from a serial or CAN IMU; ends with the accepted "
+                                           "calibration. " + EPILOG_SOURCE)
+    _add_source(lv)
+    _add_run(lv)
+    lv.add_argument("--out", metavar="FILE", help="also record what came in (recording CSV, .csv or .csv.gz)")
+    _add_calib(lv)
+    lv.set_defaults(func=cmd_live)
+
+    rc = subparsers.add_parser("record", help="record a serial or CAN IMU to a recording CSV",
+                               description="Record a serial or CAN IMU to a recording CSV (flushed every "
+                                           "second). " + EPILOG_SOURCE)
+    _add_source(rc)
+    _add_run(rc, "record")
+    rc.add_argument("--out", metavar="FILE", required=True, help="the recording CSV (.csv or .csv.gz)")
+    rc.set_defaults(func=cmd_record)
+
+    rp = subparsers.add_parser("replay", help="replay a recording or CAN log through the live calibrator",
+                               description="Replay a recording (.csv, .csv.gz) or a python-can log (.log, .asc, "
+                                           ".blf, .trc, .mf4) through the live calibrator, as fast as possible "
+                                           "or in real time.")
+    rp.add_argument("file", help="recording CSV or python-can log")
+    rp.add_argument("--realtime", action="store_true", help="at the pace of the timestamps")
+    rp.add_argument("--speed", type=float, help="pace at this many times real time (implies --realtime)")
+    _add_decoding(rp)
+    _add_run(rp, "replay")
+    rp.add_argument("--out", metavar="FILE", help="also write what was replayed as a recording CSV")
+    _add_calib(rp)
+    rp.set_defaults(func=cmd_replay)
+
+
+# ----------------------------------------------------------------------------------------------
+# opening sources
+# ----------------------------------------------------------------------------------------------
+
+
+def _open_live_source(args, notify, raw_out=None):
+    from ..cli import UsageError
+    from ..ingest.opener import can_decoder
+    from ..ingest.source import SourceError
+
+    is_can = any(hasattr(args, k) for k in ("interface", "channel"))
+    if args.port and is_can:
+        raise UsageError("give either --port (serial) or -i/-c (CAN), not both")
+    if not args.port and not is_can:
+        raise UsageError("no source: give --port PORT --protocol P, or -i INTERFACE -c CHANNEL")
+    try:
+        if args.port:
+            if not args.protocol:
+                raise UsageError("--port needs --protocol (" + ", ".join(_protocols()) + ")")
+            if args.dbc or args.map or args.can_id is not None:
+                raise UsageError("--can-id/--dbc/--map apply to CAN sources, not to --port")
+            from ..ingest.serial_source import SerialSource
+
+            columns = [c.strip() for c in args.columns.split(",")] if args.columns else None
+            return SerialSource(args.port, args.protocol, baud=args.baud, reconnect=args.reconnect,
+                                columns=columns, notify=notify)
+        from ..ingest.can_source import CanBusSource
+
+        decoder = can_decoder(args.can_id, args.dbc, args.map, host_time=True)
+        bus = _create_bus(args)
+        url = f"can://{getattr(args, 'interface', '')}/{getattr(args, 'channel', '')}"
+        return CanBusSource(bus, decoder, url=url, raw_out=raw_out)
+    except SourceError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _protocols():
+    from ..ingest.protocols import PROTOCOLS
+
+    return list(PROTOCOLS)
+
+
+def _create_bus(args):
+    """``can.Bus`` from python-can's flags (``--bus-kwargs`` values typed as python-can does)."""
+    from ..cli import UsageError
+    from ..ingest.can_source import open_bus
+    from ..ingest.source import SourceError
+
+    kwargs = {}
+    for key in ("fd", "data_bitrate"):
+        if hasattr(args, key):
+            kwargs[key] = getattr(args, key)
+    if hasattr(args, "bus_kwargs"):
+        from can.util import cast_from_string
+
+        for item in args.bus_kwargs:
+            k, eq, v = item.partition("=")
+            if not eq or not k:
+                raise UsageError(f"--bus-kwargs entry {item!r} is not KEY=VALUE")
+            kwargs[k.strip()] = cast_from_string(v.strip())
+    try:
+        return open_bus(getattr(args, "interface", None), getattr(args, "channel", None),
+                        getattr(args, "bitrate", None), **kwargs)
+    except SourceError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _default_raw_out(out):
+    name = str(out)
+    for suf in (".csv.gz", ".csv"):
+        if name.lower().endswith(suf):
+            return name[: -len(suf)] + ".log"
+    return name + ".can.log"
+
+
+# ----------------------------------------------------------------------------------------------
+# the runs
+# ----------------------------------------------------------------------------------------------
+
+
+def _calibrator(args, unit):
+    """A MagCalibrator whose kernels are compiled now, before any port is opened."""
+    import numpy as np
+
+    from ..calib.streaming import MagCalibrator
+    from ..cli import UsageError
+
+    if args.window < 16 or args.estep_every < 1:
+        raise UsageError("--window must be >= 16 and --estep-every >= 1")
+    cal = MagCalibrator(window=args.window, estep_every=args.estep_every, unit=unit, keep_history=False)
+    # a noisy sphere swept twice through the window: every kernel of the update path runs once
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(2 * args.window + 64, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    cal.update(50.0 * u + np.array([10.0, -5.0, 3.0]) + 0.1 * rng.normal(size=u.shape))
+    cal.reset()
+    cal.unit = unit
+    return cal
+
+
+def _status_printer(args, label):
+    from ..cli import _fmt_vec
+
+    show = args.progress or sys.stderr.isatty()
+    if not show or args.quiet:
+        return None, lambda: None
+    width = max(40, shutil.get_terminal_size((120, 20)).columns - 1)
+
+    def status(run):
+        c = run.counts()
+        cal = run.calibrator
+        parts = [f"{label} {c['samples']:8d} samples", f"{run.rate:7.1f} Hz",
+                 f"bad {c['bad_frames']}", f"drops {c['drops']}", f"gaps {c['gaps']}"]
+        if cal is not None:
+            cov = run.coverage
+            parts.append("coverage " + ("-" if cov is None else f"{cov:.0%}"))
+            acc = cal.accepted
+            if acc is not None:
+                parts.append(f"b {_fmt_vec(acc.hard_iron, '').strip()} F {acc.field:.4g}")
+                parts.append("ACCEPTED")
+            else:
+                parts.append(cal.status_reason())
+        line = "  ".join(parts)
+        sys.stderr.write("\r" + line[:width].ljust(width))
+        sys.stderr.flush()
+
+    def done():
+        sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    return status, done
+
+
+def _notify(msg):
+    print(f"\nmkc-stream: {msg}", file=sys.stderr, flush=True)
+
+
+def _recorder(path, source, command):
+    from ..ingest.recorder import RecordingWriter
+
+    meta = dict(source.meta)
+    meta["recorded_by"] = f"mkc-stream {command}"
+    meta["started"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    return RecordingWriter(path, meta)
+
+
+def _execute(args, source, cal, command, out_path):
+    """Run the loop over ``source`` (closing it), with a recorder when ``out_path`` is given."""
+    from ..ingest.live import Run
+
+    recorder = _recorder(out_path, source, command) if out_path else None
+    status, done = _status_printer(args, command)
+    run = Run(source, cal, recorder, max_samples=args.max_samples, duration=args.duration,
+              duration_in_sample_time=(command == "replay"), status=status)
+    try:
+        result = run.run()
+    finally:
+        source.close()
+        if status is not None:
+            done()
+    return run, result, recorder
+
+
+def cmd_live(args) -> int:
+    from ..cli import UsageError
+
+    if args.max_samples is not None and args.max_samples < 1:
+        raise UsageError("--max-samples must be >= 1")
+    # units are known before the port opens for every built-in decoder (DBC: from the signal)
+    cal = _calibrator(args, "uT")
+    from ..ingest.threaded import Threaded
+
+    src = _open_live_source(args, _notify, raw_out=args.raw_out)
+    cal.unit = src.meta.get("units.mag", "uT")
+    run, result, recorder = _execute(args, Threaded(src), cal, "live", args.out)
+    return _finish(args, "live", src, run, result, recorder)
+
+
+def cmd_record(args) -> int:
+    from ..ingest.threaded import Threaded
+
+    is_can = any(hasattr(args, k) for k in ("interface", "channel"))
+    raw_out = args.raw_out or (_default_raw_out(args.out) if is_can else None)
+    src = _open_live_source(args, _notify, raw_out=raw_out)
+    run, result, recorder = _execute(args, Threaded(src), None, "record", args.out)
+    return _finish(args, "record", src, run, result, recorder)
+
+
+def cmd_replay(args) -> int:
+    from ..cli import UsageError
+    from ..ingest.opener import open_log
+    from ..ingest.pacing import Paced
+    from ..ingest.source import SourceError
+
+    if args.speed is not None and not args.speed > 0:
+        raise UsageError("--speed must be > 0")
+    cal = _calibrator(args, "uT")
+    try:
+        src = open_log(args.file, can_id=args.can_id, dbc=args.dbc, mapping=args.map)
+    except SourceError as exc:
+        raise UsageError(str(exc)) from None
+    cal.unit = src.meta.get("units.mag", "uT")
+    paced = Paced(src, speed=args.speed or 1.0) if (args.realtime or args.speed) else src
+    run, result, recorder = _execute(args, paced, cal, "replay", args.out)
+    return _finish(args, "replay", src, run, result, recorder)
+
+
+# ----------------------------------------------------------------------------------------------
+# the result
+# ----------------------------------------------------------------------------------------------
+
+
+def _result_json(command, src, run, result, recorder):
+    counts = run.counts()
+    cal = run.calibrator
+    acc = None if cal is None else cal.accepted
+    if acc is not None:
+        obj = acc.to_json(counts=counts)
+    else:
+        reason = "no calibration (record)" if cal is None else cal.status_reason()
+        obj = {"hard_iron": None, "soft_iron": None, "field": None, "channels": [],
+               "quality": {"residual_rms": None, "coverage": None, "outlier_fraction": None, "condition": None},
+               "status": "rejected", "reason": reason, "counts": counts}
+    span = None if result.t_first is None else result.t_last - result.t_first
+    obj.update({
+        "command": command,
+        "source": src.url,
+        "protocol": src.meta.get("protocol") or src.meta.get("dbc_message") or src.meta.get("can_id"),
+        "time_source": src.meta.get("time_source"),
+        "units": {"mag": src.meta.get("units.mag", "uT")},
+        "ended": result.ended,
+        "message": result.message,
+        "elapsed_s": result.elapsed_s,
+        "cpu_percent": result.cpu_percent,
+        "samples_per_second": result.samples / result.elapsed_s if result.elapsed_s > 0 else None,
+        "sample_rate_hz": (result.samples - 1) / span if span and span > 0 and math.isfinite(span) else None,
+        "ingest": src.detail(),
+        "recording": None if recorder is None else str(recorder.path),
+        "recorded_rows": None if recorder is None else recorder.rows,
+        "raw_frames": src.meta.get("raw_frames"),
+    })
+    if recorder is not None and recorder.unrecorded:
+        obj["unrecorded_fields"] = dict(recorder.unrecorded)
+    if cal is not None:
+        obj.update({"method": "mkc-em-stream", "window": cal.stream.config.window,
+                    "estep_every": cal.stream.config.estep_every, "first_accepted_at_sample": cal.first_accepted_at})
+    ids = getattr(src.decoder, "ids_seen", None)
+    if ids is not None:
+        obj["can_ids_seen"] = {hex(k): v for k, v in ids.most_common(10)}
+    return obj
+
+
+def _report(command, src, run, result, recorder, obj, out):
+    from ..cli import _fmt_vec
+
+    p = lambda s="": print(s, file=out)  # noqa: E731
+    c = obj["counts"]
+    d = obj["ingest"]
+    unit = obj["units"]["mag"]
+    proto = obj.get("protocol")
+    p(f"mkc-stream {command}: {src.url}" + (f" ({proto})" if proto else ""))
+    rate = obj["sample_rate_hz"]
+    p(f"  read          : {c['samples']} samples in {result.elapsed_s:.1f} s"
+      + (f" ({rate:.1f} Hz by {obj['time_source']} time)" if rate else "")
+      + f", {c['bad_frames']} bad frames, {c['drops']} drops, {c['gaps']} gaps")
+    extra = [f"{d[k]} {k.replace('_', ' ')}" for k in ("resyncs", "skipped_bytes", "lead_in_bytes", "ignored",
+                                                       "truncated", "seq_resets", "reconnects") if d.get(k)]
+    if extra:
+        p(f"  ingest        : {', '.join(extra)}")
+    for why in d.get("bad_reasons", [])[:3]:
+        p(f"  bad frame     : {why}")
+    if obj.get("can_ids_seen") and not c["samples"]:
+        ids = ", ".join(f"{k} x{v}" for k, v in obj["can_ids_seen"].items())
+        p(f"  no sample     : no frame matched; ids in the data: {ids} (use --can-id, or --dbc with --map)")
+    ended = result.ended + (f": {result.message}" if result.message else "")
+    p(f"  ended         : {ended}")
+    if d.get("stopped_early"):
+        p(f"  warning       : {d['stopped_early']}")
+    if recorder is not None:
+        p(f"  recording     : {recorder.path} ({recorder.rows} rows" +
+          (", intact up to the last sample read)" if result.ended == "source lost" else ")"))
+    if obj.get("raw_frames"):
+        p(f"  raw frames    : {obj['raw_frames']} ({d.get('raw_frames', 0)} frames)")
+    if obj.get("unrecorded_fields"):
+        p(f"  not recorded  : {obj['unrecorded_fields']} (fields that appeared after the header was written)")
+    if result.cpu_percent is not None:
+        p(f"  cpu           : {result.cpu_percent:.1f}% of one core ({obj['samples_per_second']:,.0f} samples/s)")
+    cal = run.calibrator
+    if cal is None:
+        return
+    acc = cal.accepted
+    if acc is None:
+        p(f"  status        : REJECTED - {cal.status_reason()}")
+        return
+    p(f"  first accepted: after {cal.first_accepted_at} samples")
+    p(f"  hard iron b   : {_fmt_vec(acc.hard_iron, unit)}")
+    for i, row in enumerate(acc.soft_iron):
+        p(("  soft iron S   : " if i == 0 else "                  ") + _fmt_vec(row, ""))
+    p(f"  field F       : {acc.field:.5g} {unit}")
+    q = acc.quality
+    p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit}, coverage {q['coverage']:.0%}, "
+      f"outliers {q['outlier_fraction']:.1%}, condition {q['condition']:.3g}")
+    p("  status        : ACCEPTED")
+
+
+def _finish(args, command, src, run, result, recorder) -> int:
+    from ..cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, write_json
+
+    obj = _result_json(command, src, run, result, recorder)
+    if not args.quiet:
+        _report(command, src, run, result, recorder, obj, sys.stderr if args.json == "-" else sys.stdout)
+    if result.ended == "source lost":
+        print(f"mkc-stream: {result.message}; the run ended"
+              + (f", {recorder.rows} samples are in {recorder.path}" if recorder is not None else ""),
+              file=sys.stderr)
+    if args.json:
+        write_json(_finite(obj), args.json)
+    if result.ended == "source lost":
+        return EXIT_USAGE
+    if command == "record":
+        return EXIT_OK
+    return EXIT_OK if obj["status"] == "accepted" else EXIT_REJECTED
+
+
+def _finite(obj):
+    """JSON has no NaN/inf: unknown values are null (spec/machine-output.md)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+

@@ -1,0 +1,100 @@
+"""The source protocol (what every live device, bus and file looks like) and its common base.
+
+A source yields :class:`~.sample.Sample` batches from ``read(timeout)`` until ``eof``:
+
+* ``read(timeout=0.05) -> list[Sample]``: what arrived; ``[]`` when nothing came within
+  ``timeout`` seconds. Raises :class:`SourceLost` when a device or bus disappears.
+* ``eof``: True once a file is exhausted (a device never ends by itself).
+* ``meta``: recording metadata (``source``, ``units.mag``, ``time_source`` ...).
+* ``counts()``: the spec's ``{"samples", "bad_frames", "drops", "gaps"}``; ``detail()``: every
+  counter (resyncs, skipped bytes, ignored frames, reconnects ...).
+* ``close()``; sources are context managers and iterate sample by sample.
+
+Wrappers (:mod:`.pacing`, :mod:`.threaded`) have the same interface.
+"""
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+from .counters import GapCounter
+from .sample import Sample
+
+
+class SourceError(Exception):
+    """A source that cannot be opened (bad name, missing file, unknown protocol, missing extra)."""
+
+
+class SourceLost(Exception):
+    """A device or bus disappeared mid-run; the message says which and why."""
+
+
+@runtime_checkable
+class Source(Protocol):
+    url: str
+    meta: dict
+    eof: bool
+
+    def read(self, timeout: float | None = 0.05) -> list[Sample]: ...
+
+    def counts(self, consumed: int | None = None) -> dict: ...
+
+    def detail(self) -> dict: ...
+
+    def close(self) -> None: ...
+
+
+class BaseSource:
+    """Shared bookkeeping: sample and gap counts, metadata, iteration, context manager."""
+
+    #: a device or bus (True) or a file (False, may be paced)
+    live = True
+
+    def __init__(self, url: str, decoder=None, time_source: str = "device", units_mag: str = "uT"):
+        self.url = url
+        self.decoder = decoder
+        self.eof = False
+        self.samples = 0
+        self.gaps = GapCounter(min_gap_s=0.1 if time_source == "host" else 0.0)
+        self.meta: dict[str, str] = {"source": url, "units.mag": units_mag, "time_source": time_source}
+        if decoder is not None:
+            self.meta.update(getattr(decoder, "meta", {}))
+
+    def _account(self, samples: list[Sample]) -> list[Sample]:
+        self.samples += len(samples)
+        upd = self.gaps.update
+        for s in samples:
+            upd(s.t)
+        return samples
+
+    def counts(self, consumed: int | None = None) -> dict:
+        """The spec's counts; ``consumed``: samples a run actually used (it may stop mid-batch)."""
+        c = self.decoder.counts if self.decoder is not None else None
+        n = self.samples if consumed is None else consumed
+        return {"samples": n, "bad_frames": c.bad_frames if c else 0,
+                "drops": c.drops if c else 0, "gaps": self.gaps.final()}
+
+    def detail(self) -> dict:
+        d = self.decoder.counts.as_dict() if self.decoder is not None else {}
+        reasons = getattr(self.decoder, "bad_reasons", None)
+        if reasons:
+            d["bad_reasons"] = list(reasons)
+        for extra in ("crc_errors", "unchecked", "time_resets"):
+            if hasattr(self.decoder, extra):
+                d[extra] = getattr(self.decoder, extra)
+        return d
+
+    def read(self, timeout: float | None = 0.05) -> list[Sample]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __iter__(self):
+        while not self.eof:
+            yield from self.read()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

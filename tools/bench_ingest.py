@@ -1,0 +1,217 @@
+#!/usr/bin/env python
+"""Ingestion benchmarks and robustness figures (run on demand; targets live here, not in unit tests).
+
+    python tools/bench_ingest.py                     # decoders, corruption study, 10^6-sample replay
+    python tools/bench_ingest.py --quick             # 10^5-sample replay
+    python tools/bench_ingest.py --pty-seconds 60    # also: live over a pty at 1 kHz for 60 s
+    python tools/bench_ingest.py --json out/bench_ingest.json
+
+Measures:
+  - decode rate of every serial decoder (bytes fed in 4 KB chunks) and of the CAN decoders
+  - the binary protocol under 1% random byte corruption: intact frames lost (target 0), damaged
+    frames counted (target: all of them)
+  - replay of a 10^6-sample recording at 1 kHz (1000 s of data) through `mkc-stream replay`:
+    target >= 20x faster than real time
+  - optionally `mkc-stream live` over a pty at 1 kHz: samples lost (target 0) and CPU use
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import pathlib
+import random
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import redirect_stdout
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from mkc_stream.cli import main as cli_main  # noqa: E402
+from mkc_stream.ingest import make_decoder  # noqa: E402
+from mkc_stream.ingest.binary import IMU_F32, MAG_F32, MAG_I16, BinaryDecoder, encode_frame  # noqa: E402
+from mkc_stream.ingest.csvlines import encode_csv_header, encode_csv_row  # noqa: E402
+from mkc_stream.ingest.emulator import CSV_COLUMNS, DeviceModel  # noqa: E402
+from mkc_stream.ingest.motioncal import encode_motioncal  # noqa: E402
+from mkc_stream.ingest.vectornav import encode_vn  # noqa: E402
+from mkc_stream.io.recording import write_recording  # noqa: E402
+
+
+def device_rows(n, seed=0):
+    t, m, a, g, tc = DeviceModel(seed, 1000.0).block(0, n)
+    return [(k, float(t[k]), tuple(m[k].tolist()), tuple(a[k].tolist()), tuple(g[k].tolist()), float(tc[k]))
+            for k in range(n)]
+
+
+def streams(n):
+    rows = device_rows(n)
+    return {
+        "binary (IMU_F32)": b"".join(encode_frame(k, int(t * 1e6), m, a, g, tc, ftype=IMU_F32) for k, t, m, a, g, tc in rows),
+        "binary (MAG_I16)": b"".join(encode_frame(k, int(t * 1e6), m, ftype=MAG_I16) for k, t, m, a, g, tc in rows),
+        "motioncal (Raw)": b"".join(encode_motioncal(a, g, m, "Raw") for k, t, m, a, g, tc in rows),
+        "motioncal (Uni)": b"".join(encode_motioncal(a, g, m, "Uni") for k, t, m, a, g, tc in rows),
+        "csv": encode_csv_header(CSV_COLUMNS) + b"".join(encode_csv_row([t, *m, *a, *g, tc, k]) for k, t, m, a, g, tc in rows),
+        "vectornav ($VNYMR)": b"".join(encode_vn("VNYMR", m, a, g) for k, t, m, a, g, tc in rows),
+    }
+
+
+PROTO = {"binary (IMU_F32)": "binary", "binary (MAG_I16)": "binary", "motioncal (Raw)": "motioncal-raw",
+         "motioncal (Uni)": "motioncal-uni", "csv": "csv", "vectornav ($VNYMR)": "vectornav"}
+
+
+def bench_decoders(n):
+    out = {}
+    for name, data in streams(n).items():
+        dec = make_decoder(PROTO[name])
+        t0 = time.perf_counter()
+        got = 0
+        for i in range(0, len(data), 4096):
+            got += len(dec.feed(data[i:i + 4096], 0.0))
+        got += len(dec.flush())
+        dt = time.perf_counter() - t0
+        assert got == n and dec.counts.bad_frames == 0, (name, got, dec.counts)
+        out[name] = {"samples_per_s": n / dt, "MB_per_s": len(data) / dt / 1e6, "bytes_per_sample": len(data) / n}
+    return out
+
+
+def bench_can(n):
+    import can
+
+    from mkc_stream.ingest.candecoder import MagFrameDecoder
+    from mkc_stream.ingest.canframe import encode_mag_frame
+
+    rows = device_rows(n)
+    msgs = [can.Message(arbitration_id=0x110, data=encode_mag_frame(m, k), timestamp=t) for k, t, m, a, g, tc in rows]
+    dec = MagFrameDecoder()
+    t0 = time.perf_counter()
+    got = len(dec.feed(msgs))
+    res = {"built-in frame": {"samples_per_s": got / (time.perf_counter() - t0)}}
+    try:
+        from mkc_stream.ingest.dbc import DbcDecoder
+        dbc = pathlib.Path(__file__).resolve().parents[1] / "tests/data/canmod-gps-canedge/canmod-gps.dbc"
+        import cantools
+        db = cantools.database.load_file(str(dbc))
+        m = db.get_message_by_name("gnss_imu")
+        data = m.encode({"ImuValid": 1, "AccelerationX": 1.0, "AccelerationY": 2.0, "AccelerationZ": 9.75,
+                         "AngularRateX": 0.25, "AngularRateY": 0.5, "AngularRateZ": 0.0})
+        msgs = [can.Message(arbitration_id=9, data=data, timestamp=k * 1e-3) for k in range(n)]
+        dec = DbcDecoder(str(dbc), ["mx=AccelerationX,my=AccelerationY,mz=AccelerationZ"])
+        t0 = time.perf_counter()
+        got = len(dec.feed(msgs))
+        res["DBC (cantools)"] = {"samples_per_s": got / (time.perf_counter() - t0)}
+    except ImportError:
+        res["DBC (cantools)"] = None
+    return res
+
+
+def corruption_study(n_frames, rate, seeds):
+    lost = bad_true = bad_counted = drops = false_frames = 0
+    for seed in range(seeds):
+        rng = random.Random(seed)
+        frames = [encode_frame(k, k * 1000, (rng.uniform(-60, 60), 1.0, 2.0), ftype=(IMU_F32, MAG_F32, MAG_I16)[k % 3])
+                  if k % 3 != 0 else encode_frame(k, k * 1000, (1.0, 2.0, 3.0), (0, 0, 9.8), (0, 0, 0), 20.0)
+                  for k in range(n_frames)]
+        data, touched = bytearray(), set()
+        for k, f in enumerate(frames):
+            f = bytearray(f)
+            if 0 < k < n_frames - 1:
+                for i in range(len(f)):
+                    if rng.random() < rate:
+                        f[i] ^= rng.randrange(1, 256)
+                        touched.add(k)
+            data += f
+        dec = BinaryDecoder()
+        out = []
+        pos = 0
+        while pos < len(data):
+            step = rng.randrange(1, 600)
+            out += dec.feed(bytes(data[pos:pos + step]))
+            pos += step
+        out += dec.flush()
+        seqs = {s.seq for s in out}
+        good = set(range(n_frames)) - touched
+        lost += len(good - seqs)
+        false_frames += len(seqs - good)
+        bad_true += len(touched)
+        bad_counted += dec.counts.bad_frames
+        drops += dec.counts.drops
+    return {"frames": n_frames * seeds, "byte_corruption": rate, "damaged_frames": bad_true,
+            "intact_frames_lost": lost, "false_frames": false_frames, "bad_frames_counted": bad_counted,
+            "drops_counted": drops}
+
+
+def bench_replay(n, tmp):
+    path = pathlib.Path(tmp) / "replay.csv"
+    rate = 1000.0
+    t, m, a, g, tc = DeviceModel(7, rate, sweep_s=20.0).block(0, n)
+    t0 = time.perf_counter()
+    write_recording(path, t, m, {"seq": np.arange(n, dtype=float)}, {"units.mag": "uT", "rate_hz": rate})
+    t_write = time.perf_counter() - t0
+    buf = io.StringIO()
+    t0 = time.perf_counter()
+    with redirect_stdout(buf):
+        code = cli_main(["replay", str(path), "--json", "-", "--quiet"])
+    wall = time.perf_counter() - t0
+    obj = json.loads(buf.getvalue())
+    return {"samples": n, "recording_seconds": n / rate, "write_s": t_write, "replay_wall_s": wall,
+            "x_real_time": (n / rate) / wall, "exit_code": code, "status": obj["status"], "counts": obj["counts"],
+            "cpu_percent": obj["cpu_percent"], "file_MB": path.stat().st_size / 1e6}
+
+
+def bench_pty(seconds, rate=1000):
+    emu = subprocess.Popen([sys.executable, "-m", "mkc_stream.ingest.emulator", "--protocol", "binary", "--rate",
+                            str(rate), "--duration", str(seconds + 30), "--pty"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    pty = emu.stdout.readline().split()[1]
+    buf = io.StringIO()
+    with redirect_stdout(buf):
+        cli_main(["live", "--port", pty, "--protocol", "binary", "--max-samples", str(int(seconds * rate)),
+                  "--json", "-", "--quiet"])
+    emu.terminate()
+    _, err = emu.communicate(timeout=10)
+    obj = json.loads(buf.getvalue())
+    return {"seconds": seconds, "rate_hz": rate, "counts": obj["counts"], "elapsed_s": obj["elapsed_s"],
+            "cpu_percent_live": obj["cpu_percent"], "emulator": err.strip()}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="10^5-sample replay instead of 10^6")
+    p.add_argument("--pty-seconds", type=float, default=0.0, help="also run live over a pty at 1 kHz this long")
+    p.add_argument("--json", help="write the figures here")
+    a = p.parse_args(argv)
+    res = {}
+    print("decoders (100k samples each, 4 KB chunks):")
+    res["decoders"] = bench_decoders(100_000)
+    for k, v in res["decoders"].items():
+        print(f"  {k:20s} {v['samples_per_s']:12,.0f} samples/s  {v['MB_per_s']:6.1f} MB/s  {v['bytes_per_sample']:5.1f} B/sample")
+    res["can"] = bench_can(100_000)
+    for k, v in res["can"].items():
+        print(f"  CAN {k:16s} " + ("not installed" if v is None else f"{v['samples_per_s']:12,.0f} samples/s"))
+    res["corruption"] = corruption_study(10_000, 0.01, 10)
+    c = res["corruption"]
+    print(f"binary protocol, 1% of bytes corrupted, {c['frames']} frames: {c['damaged_frames']} damaged, "
+          f"{c['bad_frames_counted']} counted bad, {c['intact_frames_lost']} intact frames lost, "
+          f"{c['false_frames']} false frames, {c['drops_counted']} drops counted")
+    n = 100_000 if a.quick else 1_000_000
+    with tempfile.TemporaryDirectory() as tmp:
+        res["replay"] = r = bench_replay(n, tmp)
+    print(f"replay of {n} samples at 1 kHz ({r['recording_seconds']:.0f} s, {r['file_MB']:.0f} MB): "
+          f"{r['replay_wall_s']:.1f} s wall = {r['x_real_time']:.1f}x real time (target >= 20x), "
+          f"cpu {r['cpu_percent']:.0f}%, {r['status']}, counts {r['counts']}")
+    if a.pty_seconds:
+        res["pty"] = q = bench_pty(a.pty_seconds)
+        print(f"live over a pty at 1 kHz for {a.pty_seconds:g} s: {q['counts']} in {q['elapsed_s']:.1f} s, "
+              f"cpu of the live process {q['cpu_percent_live']:.1f}%\n  {q['emulator']}")
+    if a.json:
+        pathlib.Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        pathlib.Path(a.json).write_text(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
