@@ -1,8 +1,9 @@
 """The streaming estimator's fixed-size state: field for field the C struct of firmware_ref/.
 
 Sizes depend only on the configuration (n parameters, m channels, window W), never on the number
-of samples seen. `STATE_FIELDS` is the single source of truth for the layout; the C header and the
-memory-footprint table are generated from it.
+of samples seen. `STATE_FIELDS` is the single source of truth for the layout: the C struct in
+firmware_ref/include/mkc.h mirrors it (tests/test_firmware.py checks the field set) and its index
+constants are generated from it by tools/gen_firmware_tables.py.
 """
 from __future__ import annotations
 

@@ -9,18 +9,21 @@ exactly: if (m' - r0')^T M' (m' - r0') = 1, then b = c0 + s0 r0' and M = M' / s0
 Normalising also keeps the origin inside the ellipsoid, which the "= 1" form of eq. (36)
 requires (an ellipsoid through the origin has no such form).
 
-S is taken as F * M^(1/2) with the symmetric square root built from eigh: Q diag(sqrt l) Q^T
-is the same matrix whatever sign or order eigh gives its eigenvectors, so S can be neither
-mirrored nor rotated (the defect of building S from Q alone). det(S) = 1 and F = det(M)^(-1/6)
+S is taken as F * M^(1/2) with the symmetric square root built from a cyclic Jacobi
+eigen-decomposition (calib/portable.py; bit-reproducible, as the C port's): Q diag(sqrt l) Q^T is
+the same matrix whatever sign or order the eigenvectors have, so S can be neither mirrored nor
+rotated (the defect of building S from Q alone). det(S) = 1 and F = det(M)^(-1/6)
 is the geometric-mean radius, so S only reshapes and F carries the field strength.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .._validation import MKCInputError
+from .portable import jacobi_eigen, lstsq_sphere, solve3
 
 #: Fewest samples for which a 9-parameter fit is even determined; real fits want hundreds.
 MIN_SAMPLES = 10
@@ -67,29 +70,38 @@ def geometry_from_theta(theta: np.ndarray) -> EllipsoidGeometry:
     A, B = quadric_from_theta(theta)
     if not np.all(np.isfinite(A)) or not np.all(np.isfinite(B)):
         raise EllipsoidError("ellipsoid parameters are not finite")
-    eigA = np.linalg.eigvalsh(A)
+    Al = A.tolist()
+    eigA, _ = jacobi_eigen([row[:] for row in Al], False)
     if eigA[0] * eigA[-1] <= 0:
         raise EllipsoidError(
-            f"the fitted quadric is not an ellipsoid: A is indefinite or singular (eigenvalues {eigA.tolist()}); "
+            f"the fitted quadric is not an ellipsoid: A is indefinite or singular (eigenvalues {eigA}); "
             "the data do not cover enough orientations, or the disturbances dominate")
-    r0 = -0.5 * np.linalg.solve(A, B)
-    k = 1.0 + r0 @ A @ r0
-    M = A / k
-    lam, Q = np.linalg.eigh(M)
+    sol = solve3(Al, B.tolist())
+    if sol is None:
+        raise np.linalg.LinAlgError("Singular matrix")
+    r0 = [-0.5 * v for v in sol]
+    Ar0 = [r0[0] * Al[0][j] + r0[1] * Al[1][j] + r0[2] * Al[2][j] for j in range(3)]
+    k = 1.0 + (Ar0[0] * r0[0] + Ar0[1] * r0[1] + Ar0[2] * r0[2])
+    M = [[Al[i][j] / k for j in range(3)] for i in range(3)]
+    lam, Q = jacobi_eigen([row[:] for row in M], True)
     if not lam[0] > 0:
         raise EllipsoidError(f"the fitted quadric is an empty or imaginary ellipsoid (1 + r0'A r0 = {k:.3g})")
+    Q = np.array(Q)
     if np.linalg.det(Q) < 0:       # a proper rotation for (40); M itself does not depend on this
         Q[:, 0] = -Q[:, 0]
-    return EllipsoidGeometry(centre=r0, M=0.5 * (M + M.T), semi_axes=1.0 / np.sqrt(lam), rotation=Q)
+    return EllipsoidGeometry(centre=np.array(r0), M=np.array(M), semi_axes=1.0 / np.sqrt(np.array(lam)), rotation=Q)
 
 
 def calibration_from_geometry(geom: EllipsoidGeometry):
     """(b, S, F) with m_cal = S (m - b), S symmetric positive definite with det(S) = 1."""
-    lam, Q = np.linalg.eigh(geom.M)
-    F = float(np.prod(lam) ** (-1.0 / 6.0))
-    S = F * (Q * np.sqrt(lam)) @ Q.T
-    S = 0.5 * (S + S.T)
-    return geom.centre.copy(), S, F
+    lam, Q = jacobi_eigen(np.asarray(geom.M, dtype=np.float64).tolist(), True)
+    F = (lam[0] * lam[1] * lam[2]) ** (-1.0 / 6.0)
+    P = [[F * (Q[i][k] * math.sqrt(lam[k])) for k in range(3)] for i in range(3)]
+    S = [[P[i][0] * Q[j][0] + P[i][1] * Q[j][1] + P[i][2] * Q[j][2] for j in range(3)] for i in range(3)]
+    for i in range(3):
+        for j in range(i + 1, 3):
+            S[i][j] = S[j][i] = 0.5 * (S[i][j] + S[j][i])
+    return geom.centre.copy(), np.array(S), float(F)
 
 
 def check_geometry_of_samples(mag: np.ndarray) -> None:
@@ -117,10 +129,11 @@ def sphere_fit(mag: np.ndarray):
     c = mag.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((mag - c) ** 2, axis=1)))) or 1.0
     m = (mag - c) / scale
-    G = np.column_stack([2 * m, np.ones(len(m))])
-    sol, *_ = np.linalg.lstsq(G, np.sum(m * m, axis=1), rcond=None)
-    b, k = sol[:3], sol[3]
-    F2 = k + b @ b
+    sol = lstsq_sphere(m)        # the columns [2 m, 1] against |m|^2, reproducibly (calib/portable.py)
+    if sol is None:
+        return None
+    b, k = np.array(sol[:3]), sol[3]
+    F2 = k + (b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
     if not (np.isfinite(F2) and F2 > 0):
         return None
     return c + scale * b, scale * float(np.sqrt(F2))

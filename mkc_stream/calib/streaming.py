@@ -147,9 +147,12 @@ class MagCalibrator:
         st = self.stream._st
         args = self.stream._args
         while t < mags.shape[0]:
+            esteps = int(st["cnt"][K.C_ESTEPS])
             t = MW.mag_learn_many(*args, self.raw, self.slot_cell, self.slot_age, self.cell_count, self.c0,
                                   np.float64(self.s0), POLICIES[self.policy], mags, t, status, self._xk, self._yk)
-            if st["cnt"][K.C_STATUS] != K.WARMING_UP and (st["cnt"][K.C_SINCE] == 0):
+            # after an E-step only: a chunk whose last samples were all rejected right after a
+            # checkpoint leaves since == 0 without a new E-step (a duplicate checkpoint otherwise)
+            if st["cnt"][K.C_ESTEPS] > esteps and st["cnt"][K.C_STATUS] != K.WARMING_UP and st["cnt"][K.C_SINCE] == 0:
                 events.append(self._checkpoint())
         return events
 

@@ -6,4 +6,5 @@ Each module listed here defines ``register(subparsers)``, which adds its parsers
 """
 COMMAND_MODULES: list[str] = [
     "mkc_stream.commands.ingest",
+    "mkc_stream.commands.crosscheck",
 ]

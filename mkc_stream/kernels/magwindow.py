@@ -90,6 +90,16 @@ def mag_learn_many(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs,
             t += 1
             continue
         ellipsoid_features(mx, my, mz, c0, s0, xk)
+        finite = True
+        for j in range(9):
+            finite = finite and math.isfinite(xk[0, j])
+        if not finite:
+            # a huge sample whose features overflow: rejected before it touches the slot bookkeeping
+            # (learn_one would reject it after the cells and raw had been updated)
+            cnt[K.C_REJECTED] += 1
+            status_out[t] = K.REJECTED
+            t += 1
+            continue
         cell = direction_cell(mx - c0[0], my - c0[1], mz - c0[2])
         count = cnt[K.C_COUNT]
         if policy == 0:

@@ -1,0 +1,72 @@
+/* mkc_config.h: compile-time sizes and the float/double switch of the mkc C99 port.
+ *
+ * Every array of the state is sized here, so the state is one plain struct (no malloc). The sizes
+ * are capacities: a state may be configured at run time with n <= MKC_N, m <= MKC_M,
+ * W <= MKC_W (the Python StreamConfig's n, m, window); firmware compiles the exact sizes it uses
+ * (the defaults: the 9-parameter ellipsoid, one channel, W = 256), host tools compile larger ones.
+ *
+ * Override on the command line, e.g. `-DMKC_W=512 -DMKC_USE_FLOAT`.
+ */
+#ifndef MKC_CONFIG_H
+#define MKC_CONFIG_H
+
+#ifndef MKC_N
+#define MKC_N 9        /* parameters (9: the ellipsoid of eq. (36)-(37)) */
+#endif
+#ifndef MKC_M
+#define MKC_M 1        /* residual channels */
+#endif
+#ifndef MKC_W
+#define MKC_W 256      /* window: samples kept */
+#endif
+#ifndef MKC_K
+#define MKC_K 32       /* default E-step period (a run-time setting; not a size) */
+#endif
+
+#if MKC_N < 1 || MKC_M < 1 || MKC_W < 2
+#error "mkc_config.h: MKC_N, MKC_M must be >= 1 and MKC_W >= 2"
+#endif
+#if MKC_W > 65535
+#error "mkc_config.h: MKC_W must fit the 16-bit cell counters (<= 65535)"
+#endif
+
+/* Storage and arithmetic precision. Default double: bit-for-bit the Python reference's kernels.
+ * -DMKC_USE_FLOAT stores every window and estimate value in float (the memory of a small MCU) and
+ * keeps two parts in double arithmetic by default (see README "The float build"):
+ *   MKC_ACC_DOUBLE   the window's normal equations A, b, their Cholesky factor and solves
+ *   MKC_ESTEP_DOUBLE the E-step objective, the normaliser quadrature and the BFGS iterate
+ * Measured: with both, one checkpoint of the float build from the reference's state differs from
+ * it by <= 1e-5 (theta, calibration); with either in float, by up to 1e-1 (the E-step likelihood
+ * is flat in sigma, and float noise in A is amplified by its condition). -DMKC_ACC_DOUBLE=0
+ * -DMKC_ESTEP_DOUBLE=0 gives the all-float build for an FPU without double. */
+#ifdef MKC_USE_FLOAT
+typedef float mkc_real;
+#ifndef MKC_ACC_DOUBLE
+#define MKC_ACC_DOUBLE 1
+#endif
+#ifndef MKC_ESTEP_DOUBLE
+#define MKC_ESTEP_DOUBLE 1
+#endif
+#else
+typedef double mkc_real;
+#undef MKC_ACC_DOUBLE
+#undef MKC_ESTEP_DOUBLE
+#define MKC_ACC_DOUBLE 1
+#define MKC_ESTEP_DOUBLE 1
+#endif
+
+/* accumulator type of the normal equations */
+#if MKC_ACC_DOUBLE
+typedef double mkc_acc;
+#else
+typedef float mkc_acc;
+#endif
+
+/* arithmetic type of the E-step (objective, normaliser, BFGS) */
+#if MKC_ESTEP_DOUBLE
+typedef double mkc_ereal;
+#else
+typedef float mkc_ereal;
+#endif
+
+#endif /* MKC_CONFIG_H */

@@ -1,0 +1,207 @@
+/* estep.c: the E-step, per-channel maximum likelihood of (sigma, d), eqs. (29)-(31), Algorithm 2;
+ * kernels/estep.py line by line.
+ *
+ * F(sigma, d) = log d + log Z(sigma, a/d) + (sigma^2 / N) sum_k (1 - exp(-e_k^2 / (2 d^2 sigma^2)))
+ * (the paper's "log(c_i - d_i)" read as log(c_i / d_i)), minimised over (log sigma, log d) inside a
+ * box by projected BFGS with Armijo backtracking, analytic gradients, at most max_iter iterations
+ * (+ FAR_EXTRA_ITER while far from the optimum; each with at most 40 halvings and a bounded
+ * doubling), warm-started from H. A non-finite trial
+ * is a failed step, so no NaN reaches the state.
+ */
+#include "mkc_internal.h"
+
+/* (1 - h, (1 - h) - q h, h) with h = e^-q from one exp; series for small q (no cancellation). */
+static void omh_terms(mkc_ereal q, mkc_ereal *omh, mkc_ereal *omh_qh, mkc_ereal *h)
+{
+    if (q < EC(1e-3)) {
+        mkc_ereal o = q * (EC(1.0) - q * (EC(0.5) - q * (EC(1.0 / 6.0) - q * (EC(1.0 / 24.0)))));
+        *omh = o;
+        *omh_qh = q * q * (EC(0.5) - q * (EC(1.0 / 3.0) - q * EC(0.125)));
+        *h = EC(1.0) - o;
+        return;
+    }
+    *h = exp(-q);
+    *omh = EC(1.0) - *h;
+    *omh_qh = *omh - q * *h;
+}
+
+/* F and its gradient in (log sigma, log d) for the residuals e[:n] truncated to [-a, a]. The caller
+ * passes the squares e2[k] = e[k] e[k]: the reference's q = e[k] * e[k] * inv is (e[k] e[k]) inv,
+ * so squaring once per E-step instead of once per evaluation gives the same q. */
+mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal *g0,
+                               mkc_ereal *g1)
+{
+    mkc_ereal sigma = exp(ls);
+    mkc_ereal d = exp(ld);
+    mkc_ereal s2 = sigma * sigma;
+    mkc_ereal dZs, dZA, logZ, inv, F, dF_ds, dF_dd;
+    mkc_ereal acc = EC(0.0), acc_s = EC(0.0), acc_d = EC(0.0);
+    int k;
+    logZ = mkc__log_normaliser_grad(sigma, a / d, &dZs, &dZA);
+    inv = EC(1.0) / (EC(2.0) * d * d * s2);
+    for (k = 0; k < n; k++) {
+        mkc_ereal q = (mkc_ereal)e2[k] * inv;
+        mkc_ereal omh, omh_qh, h;
+        omh_terms(q, &omh, &omh_qh, &h);
+        acc += omh;
+        acc_s += omh_qh;     /* d/dsigma [sigma^2 (1-h)] = (2 sigma)(1 - h - q h) */
+        acc_d += q * h;      /* d/dd [sigma^2 (1-h)] = -(2 sigma^2 / d) q h */
+    }
+    F = ld + logZ + s2 * acc / (mkc_ereal)n;
+    dF_ds = dZs + EC(2.0) * sigma * acc_s / (mkc_ereal)n;
+    dF_dd = EC(1.0) / d - (a / (d * d)) * dZA - EC(2.0) * s2 / d * acc_d / (mkc_ereal)n;
+    *g0 = sigma * dF_ds;
+    *g1 = d * dF_dd;
+    return F;
+}
+
+#define FIN3(a, b, c) (isfinite(a) && isfinite(b) && isfinite(c))
+#define CLAMP(v, lo, hi) mkc__min_e(mkc__max_e((v), (lo)), (hi))
+
+/* Maximum-likelihood (sigma, d) of one channel from the squared residuals e2[:n], warm-started at
+ * (sigma0, d0). H (3) = (h00, h01,
+ * h11), the BFGS inverse-Hessian approximation in (log sigma, log d), is read as the warm start and
+ * written back (H[0] <= 0: none known). On MKC_NONFINITE / MKC_BAD_INPUT the start is returned. */
+int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0, mkc_ereal d0, mkc_ereal sig_lo,
+                       mkc_ereal sig_hi, mkc_ereal d_lo, mkc_ereal d_hi, int max_iter, mkc_ereal gtol, mkc_ereal *H,
+                       mkc_ereal *sigma_out, mkc_ereal *d_out, mkc_ereal *F_out, int *iters)
+{
+    mkc_ereal lo0, hi0, lo1, hi1, z0, z1, F, g0, g1, h00, h01, h11;
+    mkc_ereal n0 = EC(0.0), n1 = EC(0.0), Fn = EC(0.0), gn0 = EC(0.0), gn1 = EC(0.0);
+    int status = MKC_NOT_CONVERGED, it = 0;
+    *iters = 0;
+    if (n < 1 || !(a > EC(0.0)) || !(sigma0 > EC(0.0)) || !(d0 > EC(0.0)) || !(d_lo <= d_hi)) {
+        *sigma_out = sigma0;
+        *d_out = d0;
+        *F_out = EC(NAN);
+        return MKC_BAD_INPUT;
+    }
+    lo0 = log(sig_lo);
+    hi0 = log(sig_hi);
+    lo1 = log(d_lo);
+    hi1 = log(d_hi);
+    z0 = CLAMP(log(sigma0), lo0, hi0);
+    z1 = CLAMP(log(d0), lo1, hi1);
+    F = mkc__estep_objective(z0, z1, e2, n, a, &g0, &g1);
+    if (!FIN3(F, g0, g1)) {
+        *sigma_out = sigma0;
+        *d_out = d0;
+        *F_out = F;
+        return MKC_NONFINITE;
+    }
+    /* inverse-Hessian approximation; F ~ log d + s^2/(2 d^2) has curvature 2 in log d */
+    h00 = EC(0.5);
+    h01 = EC(0.0);
+    h11 = EC(0.5);
+    if (H[0] > EC(0.0) && H[2] > EC(0.0) && H[0] * H[2] - H[1] * H[1] > EC(0.0) && isfinite(H[0] + H[1] + H[2])) {
+        h00 = H[0];
+        h01 = H[1];
+        h11 = H[2];
+    }
+    /* A capped E-step (a stream's generalised EM step) may run FAR_EXTRA_ITER iterations beyond
+     * its cap while the projected gradient is above FAR_GTOL: after a burst enters a clean window
+     * the optimum jumps, and max_iter iterations would leave a stale kernel for several checkpoints. */
+    while (it < max_iter + MKC_FAR_EXTRA_ITER) {
+        int free0, free1, accepted = 0, ls;
+        mkc_ereal pg0, pg1, p0, p1, pmax, alpha, alpha0, pred, s0, s1, y0, y1, sy;
+        free0 = !((z0 <= lo0 && g0 > EC(0.0)) || (z0 >= hi0 && g0 < EC(0.0)));
+        free1 = !((z1 <= lo1 && g1 > EC(0.0)) || (z1 >= hi1 && g1 < EC(0.0)));
+        pg0 = free0 ? g0 : EC(0.0);
+        pg1 = free1 ? g1 : EC(0.0);
+        if (mkc__max_e(fabs(pg0), fabs(pg1)) <= gtol) {
+            status = MKC_OK;
+            break;
+        }
+        if (it >= max_iter && mkc__max_e(fabs(pg0), fabs(pg1)) <= EC(MKC_FAR_GTOL))
+            break;            /* the cap: near enough for a generalised EM step */
+        it += 1;
+        if (free0 && free1) {
+            p0 = -(h00 * g0 + h01 * g1);
+            p1 = -(h01 * g0 + h11 * g1);
+        } else {
+            p0 = -h00 * pg0;
+            p1 = -h11 * pg1;
+        }
+        if (p0 * pg0 + p1 * pg1 >= EC(0.0)) {    /* not a descent direction: restart from steepest descent */
+            h00 = EC(0.5);
+            h01 = EC(0.0);
+            h11 = EC(0.5);
+            p0 = EC(-0.5) * pg0;
+            p1 = EC(-0.5) * pg1;
+        }
+        pmax = mkc__max_e(fabs(p0), fabs(p1));
+        alpha = pmax <= EC(2.0) ? EC(1.0) : EC(2.0) / pmax;   /* at most a factor e^2 per step */
+        alpha0 = alpha;
+        for (ls = 0; ls < 40; ls++) {
+            n0 = CLAMP(z0 + alpha * p0, lo0, hi0);
+            n1 = CLAMP(z1 + alpha * p1, lo1, hi1);
+            Fn = mkc__estep_objective(n0, n1, e2, n, a, &gn0, &gn1);
+            if (FIN3(Fn, gn0, gn1)) {
+                if (Fn <= F + EC(1e-4) * (g0 * (n0 - z0) + g1 * (n1 - z1))) {
+                    accepted = 1;
+                    break;
+                }
+            }
+            alpha *= EC(0.5);
+        }
+        pred = -(g0 * (n0 - z0) + g1 * (n1 - z1));
+        if (accepted && alpha == alpha0 && pred > EC(0.0) && (F - Fn) > EC(0.8) * pred) {
+            /* Flat regions (sigma and d large, Section III-D): the full step was accepted and F fell
+             * like its linear model, so the curvature is overestimated: keep doubling while F
+             * falls, up to the e^2 cap. */
+            mkc_ereal pnorm = mkc__max_e(fabs(p0), fabs(p1));
+            while (EC(2.0) * alpha * pnorm <= EC(2.0)) {
+                mkc_ereal t0 = CLAMP(z0 + EC(2.0) * alpha * p0, lo0, hi0);
+                mkc_ereal t1 = CLAMP(z1 + EC(2.0) * alpha * p1, lo1, hi1);
+                mkc_ereal gt0, gt1;
+                mkc_ereal Ft = mkc__estep_objective(t0, t1, e2, n, a, &gt0, &gt1);
+                if (!FIN3(Ft, gt0, gt1) || Ft >= Fn)
+                    break;
+                alpha *= EC(2.0);
+                n0 = t0;
+                n1 = t1;
+                Fn = Ft;
+                gn0 = gt0;
+                gn1 = gt1;
+            }
+        }
+        if (!accepted) {
+            /* no decrease possible at float resolution: at the minimum (or on a flat ridge) */
+            status = mkc__max_e(fabs(pg0), fabs(pg1)) <= EC(1e3) * gtol ? MKC_OK : MKC_NOT_CONVERGED;
+            break;
+        }
+        s0 = n0 - z0;
+        s1 = n1 - z1;
+        y0 = gn0 - g0;
+        y1 = gn1 - g1;
+        sy = s0 * y0 + s1 * y1;
+        if (sy > EC(1e-12) * sqrt((s0 * s0 + s1 * s1) * (y0 * y0 + y1 * y1))) {
+            /* BFGS inverse update H <- (I - r s y^T) H (I - r y s^T) + r s s^T */
+            mkc_ereal r = EC(1.0) / sy;
+            mkc_ereal hy0 = h00 * y0 + h01 * y1;
+            mkc_ereal hy1 = h01 * y0 + h11 * y1;
+            mkc_ereal yhy = y0 * hy0 + y1 * hy1;
+            mkc_ereal c = (EC(1.0) + r * yhy) * r;
+            h00 = h00 + c * s0 * s0 - r * (hy0 * s0 + s0 * hy0);
+            h01 = h01 + c * s0 * s1 - r * (hy0 * s1 + s0 * hy1);
+            h11 = h11 + c * s1 * s1 - r * (hy1 * s1 + s1 * hy1);
+        }
+        z0 = n0;
+        z1 = n1;
+        F = Fn;
+        g0 = gn0;
+        g1 = gn1;
+        if (mkc__max_e(fabs(s0), fabs(s1)) <= EC(1e-12)) {
+            status = MKC_OK;
+            break;
+        }
+    }
+    H[0] = h00;
+    H[1] = h01;
+    H[2] = h11;
+    *sigma_out = exp(z0);
+    *d_out = exp(z1);
+    *F_out = F;
+    *iters = it;
+    return status;
+}

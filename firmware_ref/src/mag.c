@@ -1,0 +1,483 @@
+/* mag.c: the live magnetometer calibrator; calib/streaming.py MagCalibrator.
+ *
+ * The ellipsoid model (9 parameters, one channel, target 1) fed sample by sample through the
+ * streaming MKC-EM on a direction-organised window. Features are the ellipsoid's 9 terms of
+ * (m - c0) / s0: (c0, s0) start from the median of the first init_samples samples (provisional),
+ * move to a robust sphere fit once the window's directions cover 40% of the sphere (and the
+ * estimate restarts there), and follow the trial centre and radius once a trial is accepted. Each
+ * E-step checkpoint gives a trial calibration; the acceptance predicate (and, for a new
+ * calibration, a cold-start batch MKC-EM on the same window that must agree) promotes it to the
+ * accepted one, which alone is applied. Watchdogs return to the sphere-fit normalisation after 4
+ * checkpoints without an ellipsoid or 8 trials that do not fit.
+ */
+#include "mkc_internal.h"
+
+void mkc_mag_config_default(mkc_mag_config *cfg)
+{
+    mkc_config_default(&cfg->stream, 9, 1);
+    cfg->policy = MKC_POLICY_DIRECTION;
+    cfg->unit_ut = 1;
+    cfg->init_samples = 0;
+    cfg->rules.min_coverage = RC(MKC_DEF_MIN_COVERAGE);
+    cfg->rules.max_condition = RC(MKC_DEF_MAX_CONDITION);
+    cfg->rules.max_outlier_fraction = RC(MKC_DEF_MAX_OUTLIER_FRACTION);
+    cfg->rules.max_residual_rel = RC(MKC_DEF_MAX_RESIDUAL_REL);
+    cfg->rules.field_lo_ut = RC(MKC_DEF_FIELD_LO_UT);
+    cfg->rules.field_hi_ut = RC(MKC_DEF_FIELD_HI_UT);
+    cfg->rules.max_disagreement_rel = RC(MKC_DEF_MAX_DISAGREEMENT_REL);
+}
+
+int mkc_mag_init(mkc_mag_t *cal, const mkc_mag_config *cfg)
+{
+    mkc_config sc;
+    unsigned char *p = (unsigned char *)cal;
+    size_t k;
+    int st, W;
+    if (!cal || !cfg)
+        return MKC_BAD_INPUT;
+    sc = cfg->stream;
+    sc.n = 9;
+    sc.m = 1;
+    W = sc.window;
+    if (MKC_N < 9 || (cfg->policy != MKC_POLICY_FIFO && cfg->policy != MKC_POLICY_DIRECTION) ||
+        cfg->init_samples < 0 || cfg->init_samples > W)
+        return MKC_BAD_INPUT;
+    for (k = 0; k < sizeof(*cal); k++)
+        p[k] = 0;
+    st = mkc__core_init(&cal->core, &sc, NULL, NULL, NULL, 1);
+    if (st != MKC_OK)
+        return st;
+    cal->policy = cfg->policy;
+    cal->unit_ut = cfg->unit_ut != 0;
+    cal->init_samples = cfg->init_samples > 0 ? cfg->init_samples : (W < MKC_DEF_INIT_SAMPLES ? W : MKC_DEF_INIT_SAMPLES);
+    cal->provisional = 1;
+    cal->rules = cfg->rules;
+    cal->first_accepted_at = -1;
+    cal->last_reason.code = MKC_REASON_INITIAL;
+    return MKC_OK;
+}
+
+void mkc_mag_set_listener(mkc_mag_t *cal, mkc_mag_listener fn, void *user)
+{
+    cal->listener = fn;
+    cal->listener_user = user;
+}
+
+/* ---- normalisation ---- */
+
+/* _set_normalisation: new (c0, s0); the features follow (they are computed from raw), the cells
+ * are recounted; then either restart the estimate (WLS, E-step, rebuild) or rebuild from theta. */
+static void set_normalisation(mkc_mag_t *g, const mkc_real *c0, mkc_real s0, const mkc_real *theta, int restart)
+{
+    int count = (int)g->core.cnt[MKC_C_COUNT], j;
+    for (j = 0; j < 3; j++)
+        g->c0[j] = c0[j];
+    g->s0 = s0;
+    mkc__recount_cells(g, count);
+    if (restart) {
+        mkc__restart(&g->core);
+        mkc__estep_window(&g->core);
+        mkc__rebuild(&g->core);
+    } else {
+        for (j = 0; j < 9; j++)
+            g->core.theta[j] = theta[j];
+        mkc__rebuild(&g->core);
+    }
+}
+
+/* _maybe_renormalise: re-centre on the trial centre and radius when they drift by > 10%. The trial
+ * quadric in the new coordinates: (m - b)^T M (m - b) = 1 -> A' = F^2 M, B' = 0. */
+static void maybe_renormalise(mkc_mag_t *g, const mkc__geometry *geom, const mkc_real *b, mkc_real F)
+{
+    double d0 = (double)(b[0] - g->c0[0]), d1 = (double)(b[1] - g->c0[1]), d2 = (double)(b[2] - g->c0[2]);
+    double dist = sqrt(d0 * d0 + d1 * d1 + d2 * d2), F2 = (double)F * (double)F;
+    mkc_real theta[9];
+    if (!(dist > 0.1 * (double)g->s0 || fabs((double)F / (double)g->s0 - 1.0) > 0.1))
+        return;
+    theta[0] = (mkc_real)(F2 * geom->M[0][0]);
+    theta[1] = (mkc_real)(F2 * geom->M[1][1]);
+    theta[2] = (mkc_real)(F2 * geom->M[2][2]);
+    theta[3] = (mkc_real)(2.0 * (F2 * geom->M[0][1]));
+    theta[4] = (mkc_real)(2.0 * (F2 * geom->M[0][2]));
+    theta[5] = (mkc_real)(2.0 * (F2 * geom->M[1][2]));
+    theta[6] = theta[7] = theta[8] = RC(0.0);
+    set_normalisation(g, b, F, theta, 0);
+}
+
+/* ---- checkpoints ---- */
+
+static void emit(mkc_mag_t *g)
+{
+    g->checkpoints += 1;
+    if (g->listener)
+        g->listener(g->listener_user, g);
+}
+
+static void fail_event(mkc_mag_t *g, int64_t seen, int64_t esteps)
+{
+    mkc_mag_event *ev = &g->last_event;
+    int j;
+    ev->samples_seen = seen;
+    ev->esteps = esteps;
+    ev->accepted = 0;
+    ev->has_calibration = 0;
+    ev->reason = g->last_reason;
+    for (j = 0; j < 3; j++)
+        ev->hard_iron[j] = RC(0.0);
+    ev->field = ev->coverage = ev->outlier_fraction = RC(0.0);
+}
+
+/* _try_final_normalisation: 1 when the sphere fit's coverage allows the final normalisation (done,
+ * the checkpoint continues), 0 when still waiting (the event is filled). */
+static int try_final_normalisation(mkc_mag_t *g, int count, int64_t seen, int64_t esteps)
+{
+    mkc_real b[3], F = RC(0.0), cov = RC(0.0);
+    int ok = count >= 8 && mkc__robust_sphere_fit(g, count, b, &F);
+    if (ok)
+        cov = mkc__sphere_coverage_raw(g, count, b);
+    if (!ok || cov < RC(MKC_MIN_SPHERE_COVERAGE)) {
+        g->last_reason.code = MKC_REASON_COVERAGE_WAIT;
+        g->last_reason.fails = 0;
+        g->last_reason.v[0] = (double)cov;
+        fail_event(g, seen, esteps);
+        return 0;
+    }
+    set_normalisation(g, b, F, NULL, 1);
+    g->provisional = 0;
+    return 1;
+}
+
+/* _needs_confirmation: a trial that passes the gates is confirmed by a cold start unless it is the
+ * calibration confirmed last (within the disagreement tolerance): steady streams pay nothing. */
+static int needs_confirmation(const mkc_mag_t *g, const mkc_real *b, mkc_real F)
+{
+    double d0, d1, d2, tol;
+    if (!g->has_confirmed)
+        return 1;
+    tol = (double)g->rules.max_disagreement_rel * fabs((double)F);
+    d0 = (double)(b[0] - g->confirmed_b[0]);
+    d1 = (double)(b[1] - g->confirmed_b[1]);
+    d2 = (double)(b[2] - g->confirmed_b[2]);
+    return !(sqrt(d0 * d0 + d1 * d1 + d2 * d2) <= tol && fabs((double)(F - g->confirmed_F)) <= tol);
+}
+
+static void copy_bytes(unsigned char *dst, const unsigned char *src, size_t n)
+{
+    size_t k;
+    for (k = 0; k < n; k++)
+        dst[k] = src[k];
+}
+
+/* _cold_start_disagreement: batch MKC-EM from scratch on the window, in the estimate's own state.
+ * Returns the disagreement max(|b_cold - b|, |F_cold - F|) (HUGE_VAL when the cold start gives no
+ * ellipsoid). If it agrees, the warm estimate is restored (nothing changes); otherwise the stream
+ * continues from the cold start and *have_cold says whether cold_* hold its calibration. */
+static double cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b, mkc_real F, int *have_cold,
+                                      mkc_real *bc, mkc_real Sc[3][3], mkc_real *Fc, mkc_real *qc)
+{
+    unsigned char *state = (unsigned char *)(void *)&g->core + offsetof(mkc_core_t, C);
+    mkc__geometry geom;
+    mkc_mag_reason unused;
+    double bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF;
+    int j, k;
+    *have_cold = 0;
+    copy_bytes(g->saved, state, MKC_CORE_SAVED_BYTES);
+    mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
+    if (mkc__geometry_from_theta(g->core.theta, &geom, &unused) != MKC_REASON_NONE)
+        return HUGE_VAL;
+    mkc__raw_geometry(&geom, g->c0, g->s0);
+    mkc__calibration_from_geometry(&geom, bd, Sd, &Fd);
+    e0 = bd[0] - (double)b[0];
+    e1 = bd[1] - (double)b[1];
+    e2 = bd[2] - (double)b[2];
+    dis = sqrt(e0 * e0 + e1 * e1 + e2 * e2);
+    dF = fabs(Fd - (double)F);
+    dis = dF > dis ? dF : dis;
+    if (dis <= (double)g->rules.max_disagreement_rel * fabs((double)F)) {
+        copy_bytes(state, g->saved, MKC_CORE_SAVED_BYTES);
+        return dis;
+    }
+    for (j = 0; j < 3; j++) {
+        bc[j] = (mkc_real)bd[j];
+        for (k = 0; k < 3; k++)
+            Sc[j][k] = (mkc_real)Sd[j][k];
+    }
+    *Fc = (mkc_real)Fd;
+    mkc__quality_figures(g, count, bc, (const mkc_real(*)[3])Sc, *Fc, mkc__weighted_condition(g, count), qc);
+    *have_cold = 1;
+    return dis;
+}
+
+static void checkpoint(mkc_mag_t *g)
+{
+    int64_t seen = g->core.cnt[MKC_C_SEEN], esteps = g->core.cnt[MKC_C_ESTEPS];
+    int count = (int)g->core.cnt[MKC_C_COUNT], why, j, k;
+    mkc__geometry geom;
+    mkc_mag_reason reason;
+    double bd[3], Sd[3][3], Fd;
+    mkc_real b[3], S[3][3], F, q[MKC_QUALITY], sigma, d;
+    mkc_mag_calibration *cal;
+    uint32_t fails;
+    if (g->provisional) {
+        /* The first centre came from a few samples, possibly all on one patch of the surface: the
+         * "= 1" form of eq. (36) degenerates when the features' origin is on the ellipsoid. A
+         * sphere fit is well-posed anywhere; once the window's directions around it cover enough
+         * of the sphere, re-centre the features there and restart the estimate. */
+        if (!try_final_normalisation(g, count, seen, esteps)) {
+            emit(g);
+            return;
+        }
+    }
+    sigma = g->core.sigma[0];
+    d = g->core.d[0];
+    reason.code = MKC_REASON_NONE;
+    reason.fails = 0;
+    for (j = 0; j < 6; j++)
+        reason.v[j] = 0.0;
+    why = mkc__geometry_from_theta(g->core.theta, &geom, &reason);
+    if (why != MKC_REASON_NONE) {
+        reason.code = why;
+        g->last_reason = reason;
+        fail_event(g, seen, esteps);
+        g->failed += 1;
+        if (g->failed >= MKC_MAX_FAILED_CHECKPOINTS) {
+            /* watchdog: a bad normalisation (features centred on the surface) cannot heal itself;
+             * go back to the sphere-fit normalisation on the current window */
+            g->provisional = 1;
+            g->failed = 0;
+        }
+        emit(g);
+        return;
+    }
+    mkc__raw_geometry(&geom, g->c0, g->s0);
+    mkc__calibration_from_geometry(&geom, bd, Sd, &Fd);
+    g->failed = 0;
+    for (j = 0; j < 3; j++) {
+        b[j] = (mkc_real)bd[j];
+        for (k = 0; k < 3; k++)
+            S[j][k] = (mkc_real)Sd[j][k];
+    }
+    F = (mkc_real)Fd;
+    mkc__quality_figures(g, count, b, (const mkc_real(*)[3])S, F, mkc__weighted_condition(g, count), q);
+    fails = mkc__acceptance_check(g, q, F, -1.0, &reason);
+    if (!fails && needs_confirmation(g, b, F)) {
+        /* A warm-started estimate can lock onto a wrong mode that it reinforces (the samples it
+         * down-weights are the ones that would correct it); a cold start cannot inherit that. */
+        mkc_real bc[3], Sc[3][3], Fc = RC(0.0), qc[MKC_QUALITY];
+        int have_cold;
+        double dis = cold_start_disagreement(g, count, b, F, &have_cold, bc, Sc, &Fc, qc);
+        fails = mkc__acceptance_check(g, q, F, dis, &reason);
+        if (!fails) {
+            for (j = 0; j < 3; j++)
+                g->confirmed_b[j] = b[j];
+            g->confirmed_F = F;
+            g->has_confirmed = 1;
+        } else if (have_cold) {          /* report (and continue from) the cold start */
+            for (j = 0; j < 3; j++) {
+                b[j] = bc[j];
+                for (k = 0; k < 3; k++)
+                    S[j][k] = Sc[j][k];
+            }
+            F = Fc;
+            for (j = 0; j < MKC_QUALITY; j++)
+                q[j] = qc[j];
+            sigma = g->core.sigma[0];
+            d = g->core.d[0];
+        }
+    }
+    /* Watchdog: trials that keep failing the fit gates mean the estimate no longer fits the window
+     * (e.g. a wrong mode after a disturbance): redo the normalisation and restart. */
+    if (fails & (MKC_FAIL_RESIDUAL | MKC_FAIL_OUTLIERS))
+        g->misfit += 1;
+    else
+        g->misfit = 0;
+    if (g->misfit >= MKC_MAX_MISFIT_TRIALS) {
+        g->misfit = 0;
+        g->provisional = 1;
+    }
+    cal = &g->trial;
+    for (j = 0; j < 3; j++) {
+        cal->hard_iron[j] = b[j];
+        for (k = 0; k < 3; k++)
+            cal->soft_iron[j][k] = S[j][k];
+    }
+    cal->field = F;
+    cal->sigma = sigma;
+    cal->d = d;
+    for (j = 0; j < MKC_QUALITY; j++)
+        cal->quality[j] = q[j];
+    cal->valid = 1;
+    cal->accepted = fails == 0;
+    cal->reason = reason;
+    cal->samples_seen = seen;
+    cal->esteps = esteps;
+    if (!fails) {
+        g->accepted = *cal;
+        if (g->first_accepted_at < 0)
+            g->first_accepted_at = seen;
+    }
+    g->last_reason = reason;
+    g->last_event.samples_seen = seen;
+    g->last_event.esteps = esteps;
+    g->last_event.accepted = fails == 0;
+    g->last_event.has_calibration = 1;
+    g->last_event.reason = reason;
+    for (j = 0; j < 3; j++)
+        g->last_event.hard_iron[j] = b[j];
+    g->last_event.field = F;
+    g->last_event.coverage = q[MKC_Q_COVERAGE];
+    g->last_event.outlier_fraction = q[MKC_Q_OUTLIER_FRACTION];
+    if (!fails)              /* only a trustworthy trial may move the feature normalisation */
+        maybe_renormalise(g, &geom, b, F);
+    emit(g);
+}
+
+/* ---- feeding ---- */
+
+/* finite, and small enough that sums of squares stay finite (the reference accepts any finite
+ * value; a median of values near the overflow limit would put inf into c0) */
+static int finite3(mkc_real x, mkc_real y, mkc_real z)
+{
+    return fabs(x) <= MKC_MAX_ABS_INPUT && fabs(y) <= MKC_MAX_ABS_INPUT && fabs(z) <= MKC_MAX_ABS_INPUT;
+}
+
+/* One sample through the window (kernels/magwindow.py mag_learn_many's loop body), then the
+ * checkpoint if it ran an E-step. */
+static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
+{
+    mkc_core_t *c = &g->core;
+    mkc_real xk[9], yk[1] = {RC(1.0)};
+    int W = c->icfg[MKC_I_W], cell, count, slot, st, j;
+    int64_t esteps;
+    if (!finite3(mx, my, mz)) {
+        c->cnt[MKC_C_REJECTED] += 1;
+        return MKC_REJECTED;
+    }
+    mkc__ellipsoid_features(mx, my, mz, g->c0, g->s0, xk);
+    /* bounded normalised coordinates keep every product of features finite (Python: any finite) */
+    for (j = 6; j < 9; j++) {
+        if (!(fabs(xk[j]) <= MKC_MAX_ABS_NORMALISED)) {
+            c->cnt[MKC_C_REJECTED] += 1;
+            return MKC_REJECTED;
+        }
+    }
+    cell = mkc__direction_cell(mx - g->c0[0], my - g->c0[1], mz - g->c0[2]);
+    count = (int)c->cnt[MKC_C_COUNT];
+    if (g->policy == MKC_POLICY_FIFO) {
+        slot = (int)c->cnt[MKC_C_HEAD];
+        c->cnt[MKC_C_HEAD] = (slot + 1) % W;
+    } else {
+        slot = mkc__choose_slot(g, cell, count, W);
+    }
+    if (slot < count)
+        g->cell_count[g->slot_cell[slot]] -= 1;
+    esteps = c->cnt[MKC_C_ESTEPS];
+    g->in_raw[0] = mx;
+    g->in_raw[1] = my;
+    g->in_raw[2] = mz;
+    st = mkc__learn_one(c, xk, yk, slot);
+    g->slot_cell[slot] = (uint8_t)cell;
+    g->slot_age[slot] = (uint32_t)c->cnt[MKC_C_SEEN];
+    g->cell_count[cell] += 1;
+    if (c->cnt[MKC_C_ESTEPS] > esteps && c->cnt[MKC_C_STATUS] != MKC_WARMING_UP && c->cnt[MKC_C_SINCE] == 0)
+        checkpoint(g);
+    return st;
+}
+
+/* Median of the per-axis values of the pending samples (held in raw[0..pending-1]). */
+static void first_normalisation(mkc_mag_t *g)
+{
+    int n = g->pending, k, j;
+    mkc_real *w = g->work;
+    for (j = 0; j < 3; j++) {
+        for (k = 0; k < n; k++)
+            w[k] = g->raw[k][j];
+        g->c0[j] = mkc__median(w, n);
+    }
+    for (k = 0; k < n; k++) {
+        mkc_real d0 = g->raw[k][0] - g->c0[0], d1 = g->raw[k][1] - g->c0[1], d2 = g->raw[k][2] - g->c0[2];
+        w[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+    }
+    g->s0 = mkc__median(w, n);
+    if (!(g->s0 != RC(0.0)))               /* "or 1.0" */
+        g->s0 = RC(1.0);
+}
+
+int mkc_mag_push(mkc_mag_t *cal, mkc_real mx, mkc_real my, mkc_real mz)
+{
+    int k, st = MKC_WARMING_UP;
+    if (cal->s0 > RC(0.0))
+        return feed(cal, mx, my, mz);
+    /* gather init_samples finite samples for the first normalisation; raw[] holds them (each
+     * goes back to its own slot: the window is empty, so slot k = sample k) */
+    if (!finite3(mx, my, mz)) {
+        cal->core.cnt[MKC_C_REJECTED] += 1;
+        return MKC_REJECTED;
+    }
+    cal->raw[cal->pending][0] = mx;
+    cal->raw[cal->pending][1] = my;
+    cal->raw[cal->pending][2] = mz;
+    cal->pending += 1;
+    if (cal->pending < cal->init_samples)
+        return MKC_WARMING_UP;
+    first_normalisation(cal);
+    for (k = 0; k < cal->pending; k++) {
+        mkc_real x = cal->raw[k][0], y = cal->raw[k][1], z = cal->raw[k][2];
+        st = feed(cal, x, y, z);
+    }
+    cal->pending = 0;
+    return st;
+}
+
+int mkc_mag_push_many(mkc_mag_t *cal, const mkc_real *mags, long T, int8_t *status_out)
+{
+    long t;
+    int st = MKC_WARMING_UP;
+    for (t = 0; t < T; t++) {
+        st = mkc_mag_push(cal, mags[3 * t], mags[3 * t + 1], mags[3 * t + 2]);
+        if (status_out)
+            status_out[t] = (int8_t)st;
+    }
+    return st;
+}
+
+/* ---- use ---- */
+
+int mkc_mag_apply(const mkc_mag_t *cal, const mkc_real raw[3], mkc_real out[3])
+{
+    const mkc_mag_calibration *a = &cal->accepted;
+    mkc_real v[3];
+    int i;
+    if (!a->valid)
+        return MKC_NOT_CALIBRATED;
+    for (i = 0; i < 3; i++)
+        v[i] = raw[i] - a->hard_iron[i];
+    for (i = 0; i < 3; i++)
+        out[i] = v[0] * a->soft_iron[i][0] + v[1] * a->soft_iron[i][1] + v[2] * a->soft_iron[i][2];
+    return MKC_OK;
+}
+
+void mkc_mag_status_reason(const mkc_mag_t *cal, mkc_mag_reason *out)
+{
+    int j;
+    out->fails = 0;
+    for (j = 0; j < 6; j++)
+        out->v[j] = 0.0;
+    if (!(cal->s0 > RC(0.0))) {
+        out->code = MKC_REASON_PENDING;
+        out->v[0] = cal->pending;
+        out->v[1] = cal->init_samples;
+    } else if (cal->core.cnt[MKC_C_STATUS] == MKC_WARMING_UP) {
+        out->code = MKC_REASON_WINDOW;
+        out->v[0] = (double)cal->core.cnt[MKC_C_COUNT];
+        out->v[1] = cal->core.icfg[MKC_I_MIN_SAMPLES];
+    } else {
+        *out = cal->last_reason;
+    }
+}
+
+void mkc_mag_counts(const mkc_mag_t *cal, int64_t *samples, int64_t *bad_frames)
+{
+    *samples = cal->core.cnt[MKC_C_SEEN] + cal->core.cnt[MKC_C_REJECTED] + cal->pending;
+    *bad_frames = cal->core.cnt[MKC_C_REJECTED];
+}

@@ -1,0 +1,137 @@
+/* mkc_internal.h: declarations shared by the library's translation units (not installed).
+ *
+ * Numerical convention: every routine mirrors its Python kernel statement by statement, with the
+ * same operation order, so that the double build reproduces the Numba kernels to the last bit
+ * where only IEEE arithmetic and libm are involved (compile with -ffp-contract=off, never
+ * -ffast-math). <tgmath.h> picks exp/expf etc. from the argument type; literals are cast with
+ * RC/AC/EC so that the float build stays in float (checked with -Wdouble-promotion).
+ */
+#ifndef MKC_INTERNAL_H
+#define MKC_INTERNAL_H
+
+#include <tgmath.h>
+
+#include "mkc.h"
+#include "mkc_tables.h"
+
+#define RC(x) ((mkc_real)(x))
+#define AC(x) ((mkc_acc)(x))
+#define EC(x) ((mkc_ereal)(x))
+
+/* The public numbers must be the Python ones (generated into mkc_tables.h). */
+typedef char mkc__check_status[(MKC_OK == MKC_T_OK && MKC_NOT_CONVERGED == MKC_T_NOT_CONVERGED &&
+                                MKC_SINGULAR == MKC_T_SINGULAR && MKC_NONFINITE == MKC_T_NONFINITE &&
+                                MKC_BAD_INPUT == MKC_T_BAD_INPUT && MKC_WARMING_UP == MKC_T_WARMING_UP &&
+                                MKC_REJECTED == MKC_T_REJECTED) ? 1 : -1];
+typedef char mkc__check_counters[(MKC_COUNTERS == MKC_N_COUNTERS && MKC_CNT_FACTORS == MKC_C_FACTORS &&
+                                  MKC_CNT_STATUS == MKC_C_STATUS && MKC_CELLS == MKC_N_CELLS) ? 1 : -1];
+
+#define MKC_PI 3.141592653589793238462643383279502884
+
+/* The reference's 1e-300 floors (below them a quantity is "zero"); FLT_MIN-sized in a float type. */
+#if MKC_ACC_DOUBLE
+#define MKC_TINY_ACC 1e-300
+#else
+#define MKC_TINY_ACC 1e-37
+#endif
+
+/* min/max with Numba's semantics for the values that occur: the first argument on ties, NaN wins. */
+#define MKC_MIN(a, b) mkc__min_d((double)(a), (double)(b))
+static inline double mkc__min_d(double a, double b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
+static inline double mkc__max_d(double a, double b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
+static inline float mkc__min_f(float a, float b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
+static inline float mkc__max_f(float a, float b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
+#ifdef MKC_USE_FLOAT
+#define mkc__min_r mkc__min_f
+#define mkc__max_r mkc__max_f
+#else
+#define mkc__min_r mkc__min_d
+#define mkc__max_r mkc__max_d
+#endif
+#if MKC_ESTEP_DOUBLE
+#define mkc__min_e mkc__min_d
+#define mkc__max_e mkc__max_d
+#else
+#define mkc__min_e mkc__min_f
+#define mkc__max_e mkc__max_f
+#endif
+#if MKC_ACC_DOUBLE
+#define mkc__max_a mkc__max_d
+#define mkc__min_a mkc__min_d
+#else
+#define mkc__max_a mkc__max_f
+#define mkc__min_a mkc__min_f
+#endif
+
+/* ---- normaliser.c (kernels/normaliser.py) ---- */
+mkc_ereal mkc__cut_point(mkc_ereal sigma);
+/* log Z(sigma, A); *d_sigma, *d_A: its derivatives. */
+mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_sigma, mkc_ereal *d_A);
+
+/* ---- linalg.c (kernels/linalg.py, and the small dense helpers of calib/) ---- */
+int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, mkc_acc L[MKC_N][MKC_N],
+                   mkc_acc *D, int n, mkc_acc *cond);
+/* Cyclic Jacobi eigen-decomposition of a symmetric k x k matrix (k <= 9), stride 9; a is destroyed.
+ * Eigenvalues ascending into w; eigenvectors as columns of V (if V != NULL). Returns the sweeps, or
+ * -1 if it did not converge within the bound. */
+int mkc__jacobi_eigen(double a[9][9], int k, double *w, double V[9][9]);
+/* Solve the 3x3 system A x = b by Gaussian elimination with partial pivoting; MKC_SINGULAR if a
+ * pivot is 0 (numpy.linalg.solve raises LinAlgError "Singular matrix" then). */
+int mkc__solve3(const double A[3][3], const double *b, double *x);
+
+/* ---- estep.c (kernels/estep.py) ---- */
+mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal *g0,
+                               mkc_ereal *g1);
+int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0, mkc_ereal d0, mkc_ereal sig_lo,
+                       mkc_ereal sig_hi, mkc_ereal d_lo, mkc_ereal d_hi, int max_iter, mkc_ereal gtol, mkc_ereal *H,
+                       mkc_ereal *sigma, mkc_ereal *d, mkc_ereal *F, int *iters);
+
+/* ---- window.c (kernels/window.py) ---- */
+/* Rows of the window: stored (mkc_stream_t) or the ellipsoid features of raw (mkc_mag_t). */
+const mkc_real *mkc__row(const mkc_core_t *c, int s, int i, mkc_real *buf);
+void mkc__ellipsoid_features(mkc_real mx, mkc_real my, mkc_real mz, const mkc_real *c0, mkc_real s0, mkc_real *xk);
+int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,
+                   const mkc_real *theta0, int rows);
+int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int slot);
+int mkc__rebuild(mkc_core_t *c);
+void mkc__estep_window(mkc_core_t *c);
+int mkc__restart(mkc_core_t *c);
+int mkc__cold_start(mkc_core_t *c, int rounds);
+
+/* ---- magwindow.c (kernels/magwindow.py) ---- */
+int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz);
+int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W);
+void mkc__recount_cells(mkc_mag_t *g, int count);
+
+/* ---- stats.c (numpy's reductions, reproduced) ---- */
+/* numpy's pairwise summation of x[0..n-1] (np.sum / np.mean of a contiguous float64 array). */
+mkc_real mkc__pairwise_sum(const mkc_real *x, int n);
+/* np.median: the k-th smallest by selection (x is reordered). */
+mkc_real mkc__median(mkc_real *x, int n);
+/* Fraction of the 72 direction cells hit by the rows v (n x 3, calib/quality.py sphere_coverage). */
+mkc_real mkc__coverage_of_unit_cells(const int *cells_hit, int ncells);
+int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz);
+
+/* ---- sphere.c (calib/ellipsoid.py sphere_fit, robust_sphere_fit) ---- */
+int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F);
+mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real *b);
+
+/* ---- ellipsoid.c (calib/ellipsoid.py geometry_from_theta, raw_geometry, calibration_from_geometry) ---- */
+typedef struct mkc__geometry {
+    double centre[3];
+    double M[3][3];
+} mkc__geometry;
+/* Returns MKC_REASON_NONE or the MKC_REASON_* why theta is not an ellipsoid (values into reason). */
+int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_reason *reason);
+void mkc__raw_geometry(mkc__geometry *g, const mkc_real *c0, mkc_real s0);
+void mkc__calibration_from_geometry(const mkc__geometry *g, double b[3], double S[3][3], double *F);
+
+/* ---- quality.c (calib/quality.py, calib/fit.py weighted_condition, calib/acceptance.py) ---- */
+void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
+                          mkc_real condition, mkc_real *q);
+mkc_real mkc__weighted_condition(mkc_mag_t *g, int count);
+/* disagreement < 0: not checked (the reference's disagreement=None) */
+uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, double disagreement,
+                               mkc_mag_reason *reason);
+
+#endif /* MKC_INTERNAL_H */

@@ -1,0 +1,162 @@
+/* quality.c: quality figures and the acceptance predicate of a trial calibration;
+ * calib/quality.py quality_figures, calib/fit.py weighted_condition, calib/acceptance.py check.
+ *
+ * Scratch at a checkpoint (the E-step and rebuild are done): core.ebuf holds |m_cal|, core.R the
+ * norm residuals r = |m_cal| - F, g->work the copies that medians reorder and the compacted arrays
+ * numpy's means sum (pairwise, in array order).
+ */
+#include "mkc_internal.h"
+
+#define MKC_OUTLIER_K 3.5          /* outlier_mask(k=3.5) */
+#define MKC_MAD_SCALE 1.4826
+
+/* np.std of x[0..n-1] (work: n scratch values): sqrt(mean((x - mean(x))^2)). */
+static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
+{
+    mkc_real mean = mkc__pairwise_sum(x, n) / (mkc_real)n;
+    int k;
+    for (k = 0; k < n; k++) {
+        mkc_real d = x[k] - mean;
+        work[k] = d * d;
+    }
+    return sqrt(mkc__pairwise_sum(work, n) / (mkc_real)n);
+}
+
+void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
+                          mkc_real condition, mkc_real *q)
+{
+    mkc_real *nrm = g->core.ebuf, *r = &g->core.R[0][0], *w = g->work;
+    mkc_real med, mad, thr;
+    int hit[MKC_N_CELLS], k, nin = 0, nout = 0;
+    for (k = 0; k < MKC_N_CELLS; k++)
+        hit[k] = 0;
+    /* m_cal = (raw - b) S^T; r = |m_cal| - F; cells of m_cal / |m_cal| */
+    for (k = 0; k < count; k++) {
+        mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2], m[3], nk;
+        int i;
+        for (i = 0; i < 3; i++)
+            m[i] = v0 * S[i][0] + v1 * S[i][1] + v2 * S[i][2];
+        nk = sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+        nrm[k] = nk;
+        r[k] = nk - F;
+        if (nk > RC(0.0))
+            hit[mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)] = 1;
+    }
+    /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD */
+    for (k = 0; k < count; k++)
+        w[k] = r[k];
+    med = mkc__median(w, count);
+    for (k = 0; k < count; k++)
+        w[k] = fabs(r[k] - med);
+    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    thr = RC(MKC_OUTLIER_K) * mad;
+#define IS_OUT(k) (mad != RC(0.0) && fabs(r[(k)] - med) > thr)
+    /* residual_rms: over the inliers */
+    for (k = 0; k < count; k++) {
+        if (IS_OUT(k)) {
+            nout++;
+        } else {
+            w[nin++] = r[k] * r[k];
+        }
+    }
+    /* (nin >= count / 2 always: at least half the residuals lie within one MAD of the median) */
+    q[MKC_Q_RESIDUAL_RMS] = nin ? sqrt(mkc__pairwise_sum(w, nin) / (mkc_real)nin) : RC(HUGE_VAL);
+    for (k = 0; k < count; k++)
+        w[k] = r[k] * r[k];
+    q[MKC_Q_RESIDUAL_RMS_ALL] = sqrt(mkc__pairwise_sum(w, count) / (mkc_real)count);
+    q[MKC_Q_NORM_SPREAD] = np_std(nrm, count, w) / F;
+    /* the inliers' norms, compacted into r's storage (r is not needed afterwards: compact in
+     * place from the front, the write index never passes the read index) */
+    {
+        int j = 0;
+        for (k = 0; k < count; k++) {
+            if (!IS_OUT(k))
+                r[j++] = nrm[k];
+        }
+        q[MKC_Q_NORM_SPREAD_INLIERS] = nin ? np_std(r, nin, w) / F : RC(HUGE_VAL);
+    }
+#undef IS_OUT
+    q[MKC_Q_COVERAGE] = mkc__coverage_of_unit_cells(hit, MKC_N_CELLS);
+    q[MKC_Q_OUTLIER_FRACTION] = (mkc_real)nout / (mkc_real)count;
+    q[MKC_Q_CONDITION] = condition;
+}
+
+/* cond of the Jacobi-equilibrated weighted normal matrix sum_k w_k x_k x_k^T of the window, with
+ * w = c d^2 the kernel weights (calib/fit.py weighted_condition); eigenvalues by cyclic Jacobi
+ * (numpy: the 2-norm condition by SVD, the same number for this symmetric matrix). */
+mkc_real mkc__weighted_condition(mkc_mag_t *g, int count)
+{
+    double G[9][9], lam[9], dg[9], lo, hi;
+    mkc_real xk[MKC_N];
+    int k, p, q, n = 9;
+    mkc_real d = g->core.d[0];
+    for (p = 0; p < n; p++)
+        for (q = 0; q < n; q++)
+            G[p][q] = 0.0;
+    for (k = 0; k < count; k++) {
+        mkc_real wk = g->core.C[k][0] * d * d;
+        double sw = sqrt((double)mkc__max_r(wk, RC(0.0)));
+        const mkc_real *x = mkc__row(&g->core, k, 0, xk);
+        double xw[9];
+        for (p = 0; p < n; p++)
+            xw[p] = (double)x[p] * sw;
+        for (p = 0; p < n; p++)
+            for (q = 0; q <= p; q++)
+                G[p][q] += xw[p] * xw[q];
+    }
+    for (p = 0; p < n; p++) {
+        dg[p] = sqrt(G[p][p]);
+        if (dg[p] == 0.0)
+            return RC(HUGE_VAL);
+    }
+    for (p = 0; p < n; p++)
+        for (q = 0; q <= p; q++)
+            G[p][q] = G[q][p] = G[p][q] / (dg[p] * dg[q]);
+    mkc__jacobi_eigen(G, n, lam, NULL);
+    lo = HUGE_VAL;
+    hi = 0.0;
+    for (p = 0; p < n; p++) {
+        double a = fabs(lam[p]);
+        lo = a < lo ? a : lo;
+        hi = a > hi ? a : hi;
+    }
+    if (!(lo > 0.0))
+        return RC(HUGE_VAL);
+    return (mkc_real)(hi / lo);
+}
+
+/* AcceptanceRules.check: the failed criteria as bits (0: accepted); reason->v = coverage,
+ * condition, outlier fraction, residual / field, field, disagreement. */
+uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, double disagreement,
+                               mkc_mag_reason *reason)
+{
+    const mkc_mag_rules *R = &g->rules;
+    uint32_t fails = 0;
+    mkc_real cov = q[MKC_Q_COVERAGE], cond = q[MKC_Q_CONDITION], out = q[MKC_Q_OUTLIER_FRACTION];
+    mkc_real rel = field > RC(0.0) ? q[MKC_Q_RESIDUAL_RMS] / field : RC(HUGE_VAL);
+    if (!(cov >= R->min_coverage))
+        fails |= MKC_FAIL_COVERAGE;
+    if (!(cond <= R->max_condition))
+        fails |= MKC_FAIL_CONDITION;
+    if (!(out <= R->max_outlier_fraction))
+        fails |= MKC_FAIL_OUTLIERS;
+    if (!(rel <= R->max_residual_rel))
+        fails |= MKC_FAIL_RESIDUAL;
+    if (g->unit_ut) {
+        if (!(R->field_lo_ut <= field && field <= R->field_hi_ut))
+            fails |= MKC_FAIL_FIELD_RANGE;
+    } else if (!(isfinite(field) && field > RC(0.0))) {
+        fails |= MKC_FAIL_FIELD_NONPOSITIVE;
+    }
+    if (disagreement >= 0.0 && !(disagreement <= (double)R->max_disagreement_rel * fabs((double)field)))
+        fails |= MKC_FAIL_DISAGREEMENT;
+    reason->code = fails ? MKC_REASON_REJECTED : MKC_REASON_NONE;
+    reason->fails = fails;
+    reason->v[0] = (double)cov;
+    reason->v[1] = (double)cond;
+    reason->v[2] = (double)out;
+    reason->v[3] = (double)rel;
+    reason->v[4] = (double)field;
+    reason->v[5] = disagreement;
+    return fails;
+}

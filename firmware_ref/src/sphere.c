@@ -1,0 +1,182 @@
+/* sphere.c: the sphere fit that sets the calibrator's final feature normalisation;
+ * calib/ellipsoid.py sphere_fit and robust_sphere_fit, calib/quality.py sphere_coverage.
+ *
+ * |m - b|^2 = F^2 as the linear least-squares problem |m'|^2 = 2 b'^T m' + k in centred, scaled
+ * coordinates m' = (m - c) / scale (c the mean, scale the rms distance to it). The Python reference
+ * calls LAPACK's SVD least squares; here the 4x4 normal equations are solved and then refined twice
+ * with the residual recomputed from the data (semi-normal equations with refinement), which
+ * reaches the accuracy of an orthogonal solver for these well-scaled columns without storing the
+ * N x 4 matrix. Scratch: g->work (per-row sums), g->core.ebuf (residuals of the robust passes),
+ * g->core.R (median scratch).
+ */
+#include "mkc_internal.h"
+
+/* the robust passes' selection: |r_k - med| <= thr (all rows when use_mask is 0) */
+typedef struct sel {
+    int use_mask;
+    mkc_real med, thr;
+} sel;
+
+static int selected(const mkc_mag_t *g, const sel *m, int k)
+{
+    return !m->use_mask || fabs(g->core.ebuf[k] - m->med) <= m->thr;
+}
+
+/* Solve the symmetric positive definite 4x4 N x = r by Cholesky (double); 0 if not PD. */
+static int chol4(const double N[4][4], const double *r, double *x)
+{
+    double L[4][4];
+    int i, j, k;
+    for (j = 0; j < 4; j++) {
+        double s = N[j][j];
+        for (k = 0; k < j; k++)
+            s -= L[j][k] * L[j][k];
+        if (!(s > 0.0) || !isfinite(s))
+            return 0;
+        L[j][j] = sqrt(s);
+        for (i = j + 1; i < 4; i++) {
+            double t = N[i][j];
+            for (k = 0; k < j; k++)
+                t -= L[i][k] * L[j][k];
+            L[i][j] = t / L[j][j];
+        }
+    }
+    for (i = 0; i < 4; i++) {
+        double s = r[i];
+        for (k = 0; k < i; k++)
+            s -= L[i][k] * x[k];
+        x[i] = s / L[i][i];
+    }
+    for (i = 3; i >= 0; i--) {
+        double s = x[i];
+        for (k = i + 1; k < 4; k++)
+            s -= L[k][i] * x[k];
+        x[i] = s / L[i][i];
+    }
+    return 1;
+}
+
+/* sphere_fit on the selected rows of raw[:count]; returns 0 when the fit is not a sphere. */
+static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mkc_real *F_out)
+{
+    mkc_real c[3] = {RC(0.0), RC(0.0), RC(0.0)}, scale, F2, bb[3], kk;
+    double N[4][4], rhs[4], x[4] = {0.0, 0.0, 0.0, 0.0}, dx[4];
+    int k, j, p, q, it, nsel = 0;
+    /* c = mag.mean(axis=0): numpy reduces axis 0 row by row */
+    for (k = 0; k < count; k++) {
+        if (!selected(g, m, k))
+            continue;
+        for (j = 0; j < 3; j++)
+            c[j] += g->raw[k][j];
+        nsel++;
+    }
+    if (nsel < 1)
+        return 0;
+    for (j = 0; j < 3; j++)
+        c[j] /= (mkc_real)nsel;
+    /* scale = sqrt(mean(sum((mag - c)^2, axis=1))) or 1.0 */
+    for (k = 0, p = 0; k < count; k++) {
+        mkc_real d0, d1, d2;
+        if (!selected(g, m, k))
+            continue;
+        d0 = g->raw[k][0] - c[0];
+        d1 = g->raw[k][1] - c[1];
+        d2 = g->raw[k][2] - c[2];
+        g->work[p++] = d0 * d0 + d1 * d1 + d2 * d2;
+    }
+    scale = sqrt(mkc__pairwise_sum(g->work, nsel) / (mkc_real)nsel);
+    if (scale == RC(0.0))
+        scale = RC(1.0);
+    /* columns [2 m', 1], target |m'|^2: normal equations (lower triangle, first pass), then two
+     * refinement passes x += N^-1 G^T (y - G x) */
+    for (p = 0; p < 4; p++)
+        for (q = 0; q < 4; q++)
+            N[p][q] = 0.0;
+    for (it = 0; it < 3; it++) {
+        for (p = 0; p < 4; p++)
+            rhs[p] = 0.0;
+        for (k = 0; k < count; k++) {
+            double u[3], row[4], y, r;
+            if (!selected(g, m, k))
+                continue;
+            for (j = 0; j < 3; j++)
+                u[j] = (double)((g->raw[k][j] - c[j]) / scale);
+            row[0] = 2.0 * u[0];
+            row[1] = 2.0 * u[1];
+            row[2] = 2.0 * u[2];
+            row[3] = 1.0;
+            y = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+            r = y - (row[0] * x[0] + row[1] * x[1] + row[2] * x[2] + row[3] * x[3]);
+            for (p = 0; p < 4; p++) {
+                rhs[p] += row[p] * r;
+                if (it == 0)
+                    for (q = 0; q <= p; q++)
+                        N[p][q] += row[p] * row[q];
+            }
+        }
+        if (!chol4((const double(*)[4])N, rhs, dx))
+            return 0;
+        for (p = 0; p < 4; p++)
+            x[p] += dx[p];
+    }
+    for (j = 0; j < 3; j++)
+        bb[j] = (mkc_real)x[j];
+    kk = (mkc_real)x[3];
+    F2 = kk + (bb[0] * bb[0] + bb[1] * bb[1] + bb[2] * bb[2]);
+    if (!(isfinite(F2) && F2 > RC(0.0)))
+        return 0;
+    for (j = 0; j < 3; j++)
+        b_out[j] = c[j] + scale * bb[j];
+    *F_out = scale * sqrt(F2);
+    return 1;
+}
+
+/* sphere_fit, then refit without the samples whose |m - b| - F exceeds 3 robust scales (bursts),
+ * twice at most. */
+int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F)
+{
+    sel all = {0, RC(0.0), RC(0.0)};
+    int pass, k;
+    mkc_real *r = g->core.ebuf, *tmp = &g->core.R[0][0];
+    if (!sphere_fit(g, count, &all, b, F))
+        return 0;
+    for (pass = 0; pass < 2; pass++) {
+        mkc_real med, mad;
+        sel keep;
+        int nkeep = 0;
+        for (k = 0; k < count; k++) {
+            mkc_real d0 = g->raw[k][0] - b[0], d1 = g->raw[k][1] - b[1], d2 = g->raw[k][2] - b[2];
+            r[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2) - *F;
+            tmp[k] = r[k];
+        }
+        med = mkc__median(tmp, count);
+        for (k = 0; k < count; k++)
+            tmp[k] = fabs(r[k] - med);
+        mad = RC(1.4826) * mkc__median(tmp, count);
+        keep.use_mask = mad > RC(0.0);
+        keep.med = med;
+        keep.thr = RC(3.0) * mad;
+        for (k = 0; k < count; k++)
+            nkeep += selected(g, &keep, k);
+        if (nkeep < 8 || nkeep == count)
+            return 1;
+        if (!sphere_fit(g, count, &keep, b, F))
+            return 0;
+    }
+    return 1;
+}
+
+/* sphere_coverage(raw[:count] - b): fraction of the 72 cells hit by the unit directions. */
+mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real *b)
+{
+    int hit[MKC_N_CELLS], k;
+    for (k = 0; k < MKC_N_CELLS; k++)
+        hit[k] = 0;
+    for (k = 0; k < count; k++) {
+        mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2];
+        mkc_real nrm = sqrt(v0 * v0 + v1 * v1 + v2 * v2);
+        if (nrm > RC(0.0))
+            hit[mkc__unit_direction_cell(v0 / nrm, v1 / nrm, v2 / nrm)] = 1;
+    }
+    return mkc__coverage_of_unit_cells(hit, MKC_N_CELLS);
+}

@@ -1,0 +1,83 @@
+/* stream.c: the generic streaming MKC-EM public API (mkc_stream/stream.py StreamingMKC). */
+#include "mkc_internal.h"
+
+void mkc_config_default(mkc_config *cfg, int n, int m)
+{
+    cfg->n = n;
+    cfg->m = m;
+    cfg->window = MKC_W;
+    cfg->estep_every = MKC_K;
+    cfg->fp_rounds = MKC_DEF_FP_ROUNDS;
+    cfg->estep_max_iter = MKC_DEF_ESTEP_MAX_ITER;
+    cfg->refactor_every = MKC_DEF_REFACTOR_EVERY;
+    cfg->min_samples = MKC_DEF_MIN_SAMPLES;
+    cfg->sigma_lo = MKC_DEF_SIGMA_LO;
+    cfg->sigma_hi = MKC_DEF_SIGMA_HI;
+    cfg->d_lo = MKC_DEF_D_LO;
+    cfg->d_hi = MKC_DEF_D_HI;
+    cfg->a_factor = MKC_DEF_A_FACTOR;
+    cfg->a = MKC_DEF_A;
+    cfg->estep_gtol = MKC_DEF_ESTEP_GTOL;
+    cfg->fp_tol = MKC_DEF_FP_TOL;
+    cfg->sigma_start = MKC_DEF_SIGMA_START;
+}
+
+int mkc_stream_init(mkc_stream_t *st, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,
+                    const mkc_real *theta0)
+{
+    unsigned char *p = (unsigned char *)st;
+    size_t k;
+    int r;
+    if (!st || !cfg)
+        return MKC_BAD_INPUT;
+    for (k = 0; k < sizeof(*st); k++)
+        p[k] = 0;
+    r = mkc__core_init(&st->core, cfg, sigma0, d0, theta0, 0);
+    if (r != MKC_OK)
+        st->core.icfg[MKC_I_N] = 0;       /* unusable: learn_one answers MKC_BAD_INPUT */
+    return r;
+}
+
+int mkc_stream_learn_one(mkc_stream_t *st, const mkc_real *x, const mkc_real *y, int slot)
+{
+    mkc_core_t *c = &st->core;
+    int n = c->icfg[MKC_I_N], m = c->icfg[MKC_I_M], i, j;
+    if (n < 1 || slot >= c->icfg[MKC_I_W] || (slot >= 0 && slot > c->cnt[MKC_C_COUNT]))
+        return MKC_BAD_INPUT;
+    for (i = 0; i < m; i++) {
+        if (!(fabs(y[i]) <= MKC_MAX_ABS_INPUT)) {      /* NaN, inf or huge */
+            c->cnt[MKC_C_REJECTED] += 1;
+            return MKC_REJECTED;
+        }
+        for (j = 0; j < n; j++) {
+            if (!(fabs(x[i * n + j]) <= MKC_MAX_ABS_INPUT)) {
+                c->cnt[MKC_C_REJECTED] += 1;
+                return MKC_REJECTED;
+            }
+        }
+    }
+    return mkc__learn_one(c, x, y, slot);
+}
+
+int mkc_stream_learn_many(mkc_stream_t *st, const mkc_real *X, const mkc_real *Y, long T, int8_t *status_out)
+{
+    int n = st->core.icfg[MKC_I_N], m = st->core.icfg[MKC_I_M], s = MKC_WARMING_UP;
+    long t;
+    for (t = 0; t < T; t++) {
+        s = mkc_stream_learn_one(st, X + (size_t)t * (size_t)(m * n), Y + (size_t)t * (size_t)m, -1);
+        if (status_out)
+            status_out[t] = (int8_t)s;
+    }
+    return s;
+}
+
+void mkc_stream_predict(const mkc_stream_t *st, const mkc_real *x, mkc_real *out)
+{
+    int n = st->core.icfg[MKC_I_N], m = st->core.icfg[MKC_I_M], i, j;
+    for (i = 0; i < m; i++) {
+        mkc_real s = RC(0.0);
+        for (j = 0; j < n; j++)
+            s += x[i * n + j] * st->core.theta[j];
+        out[i] = s;
+    }
+}

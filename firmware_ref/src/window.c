@@ -1,0 +1,492 @@
+/* window.c: streaming MKC-EM over a fixed-size window; kernels/window.py line by line.
+ *
+ * The window's weighted normal equations A theta = b (eq. (15)) are sums of per-row terms c x x^T
+ * with c = w / d^2; each slot stores the c it added, so that replacing a sample subtracts exactly
+ * what it added. theta is tracked every sample in O(n^2) by one refinement step with the last
+ * equilibrated Cholesky factor; the factor is refreshed every `refactor` samples, at checkpoints
+ * and when a step is not small. Every K samples the E-step (Algorithm 2) runs on the window's
+ * residuals and A, b are rebuilt from the window with the new weights (fixed-point rounds of
+ * Algorithm 1, eq. (16)), which also removes the add/remove rounding drift.
+ *
+ * Rows: a mkc_stream_t stores them (X, Y); a mkc_mag_t stores the raw 3-vectors and the rows are
+ * the ellipsoid features of eq. (36)-(37) recomputed from them (target 1), bit-identical to the
+ * stored features of the Python reference (same formula, same normalisation).
+ */
+#include "mkc_internal.h"
+
+#define ICFG(c, i) ((c)->icfg[(i)])
+#define FCFG(c, i) ((c)->fcfg[(i)])
+
+/* x_k of eq. (36)-(37) for the normalised sample (m - c0) / s0 (kernels/magwindow.py). */
+void mkc__ellipsoid_features(mkc_real mx, mkc_real my, mkc_real mz, const mkc_real *c0, mkc_real s0, mkc_real *xk)
+{
+    mkc_real x = (mx - c0[0]) / s0;
+    mkc_real y = (my - c0[1]) / s0;
+    mkc_real z = (mz - c0[2]) / s0;
+    xk[0] = x * x;
+    xk[1] = y * y;
+    xk[2] = z * z;
+    xk[3] = x * y;
+    xk[4] = x * z;
+    xk[5] = y * z;
+    xk[6] = x;
+    xk[7] = y;
+    xk[8] = z;
+}
+
+const mkc_real *mkc__row(const mkc_core_t *c, int s, int i, mkc_real *buf)
+{
+    if (c->rows) {
+        const mkc_mag_t *g = (const mkc_mag_t *)(const void *)c;
+        mkc__ellipsoid_features(g->raw[s][0], g->raw[s][1], g->raw[s][2], g->c0, g->s0, buf);
+        return buf;
+    }
+    return ((const mkc_stream_t *)(const void *)c)->X[s][i];
+}
+
+static mkc_real target(const mkc_core_t *c, int s, int i)
+{
+    if (c->rows)
+        return RC(1.0);
+    return ((const mkc_stream_t *)(const void *)c)->Y[s][i];
+}
+
+/* Write the new sample into slot s (before anything reads that slot's row). */
+static void store_row(mkc_core_t *c, int s, const mkc_real *xk, const mkc_real *yk)
+{
+    int i, j, n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
+    if (c->rows) {
+        mkc_mag_t *g = (mkc_mag_t *)(void *)c;
+        g->raw[s][0] = g->in_raw[0];
+        g->raw[s][1] = g->in_raw[1];
+        g->raw[s][2] = g->in_raw[2];
+        return;
+    }
+    for (i = 0; i < m; i++) {
+        mkc_stream_t *st = (mkc_stream_t *)(void *)c;
+        st->Y[s][i] = yk[i];
+        for (j = 0; j < n; j++)
+            st->X[s][i][j] = xk[i * n + j];
+    }
+}
+
+/* 1 / (2 d^2 sigma^2): w = exp(-e^2 * this) (kernels/correntropy.py weight_exponent_scale). */
+static mkc_real weight_exponent_scale(mkc_real sigma, mkc_real d)
+{
+    return RC(1.0) / (RC(2.0) * d * d * sigma * sigma);
+}
+
+/* A += c x x^T (lower triangle), b += c x y: one channel-row of eq. (15). */
+static void row_update(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x, mkc_real y, mkc_acc c, int n)
+{
+    int p, q;
+    for (p = 0; p < n; p++) {
+        mkc_acc xp = (mkc_acc)x[p] * c;
+        b[p] += xp * (mkc_acc)y;
+        for (q = 0; q <= p; q++)
+            A[p][q] += xp * (mkc_acc)x[q];
+    }
+}
+
+/* Mirror A's lower triangle and solve A theta = b; theta is kept if A is singular. L, D then hold
+ * the factor the tracking steps use (age 0), or are marked invalid. */
+static int solve_window(mkc_core_t *c, mkc_acc *cond)
+{
+    int p, q, j, st, n = ICFG(c, MKC_I_N);
+    for (p = 0; p < n; p++)
+        for (q = p + 1; q < n; q++)
+            c->A[p][q] = c->A[q][p];
+    st = mkc__spd_solve((const mkc_acc(*)[MKC_N])c->A, c->b, c->xs, c->L, c->D, n, cond);
+    c->cnt[MKC_C_FACTORS] += 1;
+    if (st == MKC_OK) {
+        for (j = 0; j < n; j++)
+            c->theta[j] = (mkc_real)c->xs[j];
+        c->cnt[MKC_C_FACTOR_AGE] = 0;
+    } else {
+        c->cnt[MKC_C_FACTOR_AGE] = -1;
+    }
+    return st;
+}
+
+/* One refinement step theta += (D L L^T D)^-1 (b - A theta) with the stored factor (O(n^2)), from
+ * A's lower triangle. Returns 0 (theta untouched) if the step is not finite or larger than
+ * REFINE_MAX_STEP |theta|: the factor is too stale, the caller refactors. */
+static int refine_theta(mkc_core_t *c)
+{
+    int p, q, k, i, j, n = ICFG(c, MKC_I_N);
+    mkc_acc step = AC(0.0), size = AC(0.0), s[MKC_N];
+    /* r = D (b - A theta). Each s[p] subtracts A[p][q] theta[q] in ascending q (A[p][q] below the
+     * diagonal, A[q][p] above), as the reference's row loop; looping q outside lets the n sums
+     * proceed side by side instead of as one dependent chain. Same operations, same order per p. */
+    for (p = 0; p < n; p++)
+        s[p] = c->b[p];
+    for (q = 0; q < n; q++) {
+        mkc_acc tq = (mkc_acc)c->theta[q];
+        for (p = 0; p < q; p++)
+            s[p] -= c->A[q][p] * tq;
+        for (p = q; p < n; p++)
+            s[p] -= c->A[p][q] * tq;
+    }
+    for (p = 0; p < n; p++)
+        s[p] *= c->D[p];
+    /* forward solve L z = r column by column (each s[p] still subtracts L[p][k] xs[k] in ascending
+     * k, after its scaling by D[p]); backward solve L^T y = z row by row, as the reference */
+    for (k = 0; k < n; k++) {
+        mkc_acc xk = s[k] * c->L[k][k];
+        c->xs[k] = xk;
+        for (p = k + 1; p < n; p++)
+            s[p] -= c->L[p][k] * xk;
+    }
+    for (i = n - 1; i >= 0; i--) {
+        mkc_acc t = c->xs[i];
+        for (k = i + 1; k < n; k++)
+            t -= c->L[k][i] * c->xs[k];
+        c->xs[i] = t * c->L[i][i];
+    }
+    for (j = 0; j < n; j++) {
+        c->xs[j] *= c->D[j];
+        step = mkc__max_a(step, fabs(c->xs[j]));
+        size = mkc__max_a(size, (mkc_acc)fabs(c->theta[j]));
+    }
+    if (!(step <= AC(MKC_REFINE_MAX_STEP) * size))   /* also catches NaN */
+        return 0;
+    for (j = 0; j < n; j++)
+        c->theta[j] = (mkc_real)((mkc_acc)c->theta[j] + c->xs[j]);
+    return 1;
+}
+
+/* Fixed-point rounds of Algorithm 1 on the window (eq. (16)), at most fp_rounds: weights at the
+ * current theta -> A, b from scratch (C records each row's c) -> solve; stops when
+ * ||theta_new - theta|| <= fp_tol ||theta||. have_r: R already holds the residuals at theta (the
+ * E-step computed them with the same loop), so the first round skips that pass. */
+static int rebuild_with(mkc_core_t *c, int have_r)
+{
+    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
+    int count = (int)c->cnt[MKC_C_COUNT];
+    int status = MKC_NOT_CONVERGED, rnd, p, q, s, i, j, st;
+    mkc_real buf[MKC_N];
+    for (rnd = 0; rnd < ICFG(c, MKC_I_FP_ROUNDS); rnd++) {
+        mkc_acc wsum = AC(0.0), cond, num = AC(0.0), den = AC(0.0);
+        for (p = 0; p < n; p++) {
+            c->b[p] = AC(0.0);
+            c->tprev[p] = c->theta[p];
+            for (q = 0; q < n; q++)
+                c->A[p][q] = AC(0.0);
+        }
+        for (s = 0; s < count; s++) {
+            for (i = 0; i < m; i++) {
+                const mkc_real *x = mkc__row(c, s, i, buf);
+                mkc_real y = target(c, s, i);
+                mkc_real r, w, cc;
+                if (have_r && rnd == 0) {
+                    r = c->R[s][i];
+                } else {
+                    r = y;
+                    for (j = 0; j < n; j++)
+                        r -= x[j] * c->theta[j];
+                }
+                w = exp(-r * r * weight_exponent_scale(c->sigma[i], c->d[i]));
+                wsum += (mkc_acc)w;
+                cc = w * (RC(1.0) / (c->d[i] * c->d[i]));
+                c->C[s][i] = cc;
+                if (cc != RC(0.0))
+                    row_update(c->A, c->b, x, y, (mkc_acc)cc, n);
+            }
+        }
+        if (wsum < (mkc_acc)n) {
+            /* fewer effective equations than unknowns: the kernel lost the data (a bad theta) */
+            c->cnt[MKC_C_SINGULAR] += 1;
+            c->cnt[MKC_C_FACTOR_AGE] = -1;          /* L, D belong to an A that no longer exists */
+            return MKC_SINGULAR;
+        }
+        st = solve_window(c, &cond);
+        c->fst[MKC_S_COND] = (mkc_real)cond;
+        c->cnt[MKC_C_FP_ITERS] += 1;
+        if (st != MKC_OK) {
+            c->cnt[MKC_C_SINGULAR] += 1;
+            return st;
+        }
+        for (j = 0; j < n; j++) {
+            mkc_acc dj = (mkc_acc)c->theta[j] - (mkc_acc)c->tprev[j];
+            mkc_acc tj = (mkc_acc)c->tprev[j];
+            num += dj * dj;
+            den += tj * tj;
+        }
+        if (sqrt(num) <= (mkc_acc)FCFG(c, MKC_F_FP_TOL) * mkc__max_a(sqrt(den), AC(MKC_TINY_ACC))) {
+            status = MKC_OK;
+            break;
+        }
+    }
+    return status;
+}
+
+int mkc__rebuild(mkc_core_t *c)
+{
+    return rebuild_with(c, 0);
+}
+
+/* Algorithm 2 per channel on the window's residuals at the current theta, warm-started. */
+void mkc__estep_window(mkc_core_t *c)
+{
+    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
+    int count = (int)c->cnt[MKC_C_COUNT];
+    int s, i, j;
+    mkc_ereal Fsum = EC(0.0);
+    mkc_real buf[MKC_N];
+    for (s = 0; s < count; s++) {
+        for (i = 0; i < m; i++) {
+            const mkc_real *x = mkc__row(c, s, i, buf);
+            mkc_real r = target(c, s, i);
+            for (j = 0; j < n; j++)
+                r -= x[j] * c->theta[j];
+            c->R[s][i] = r;
+        }
+    }
+    for (i = 0; i < m; i++) {
+        mkc_real amax = RC(0.0), ymax = RC(0.0), ai;
+        mkc_ereal s_new, d_new, F;
+        int its, st;
+        for (s = 0; s < count; s++) {
+            c->ebuf[s] = c->R[s][i] * c->R[s][i];        /* the objective needs the squares only */
+            amax = mkc__max_r(amax, fabs(c->R[s][i]));
+            ymax = mkc__max_r(ymax, fabs(target(c, s, i)));
+        }
+        ai = FCFG(c, MKC_F_FIXED_A) > RC(0.0) ? FCFG(c, MKC_F_FIXED_A)
+                                              : mkc__max_r(FCFG(c, MKC_F_AFAC) * amax, RC(1e-12) * (RC(1.0) + ymax));
+        if (!(RC(0.5) * c->a[i] <= ai && ai <= RC(2.0) * c->a[i])) {
+            /* The truncation bound moved by more than 2x (a burst entered or left the window): the
+             * curvature learnt in the old regime would throw the first step to the box edge.
+             * Start this E-step from the default curvature. */
+            c->Hes[i][0] = EC(0.0);
+            c->Hes[i][1] = EC(0.0);
+            c->Hes[i][2] = EC(0.0);
+        }
+        c->a[i] = ai;
+        st = mkc__estep_channel(c->ebuf, count, (mkc_ereal)ai, (mkc_ereal)c->sigma[i], (mkc_ereal)c->d[i],
+                                (mkc_ereal)FCFG(c, MKC_F_SIG_LO), (mkc_ereal)FCFG(c, MKC_F_SIG_HI),
+                                (mkc_ereal)(FCFG(c, MKC_F_DLO) * ai), (mkc_ereal)(FCFG(c, MKC_F_DHI) * ai),
+                                ICFG(c, MKC_I_ES_MAX_ITER), (mkc_ereal)FCFG(c, MKC_F_ES_GTOL), c->Hes[i], &s_new,
+                                &d_new, &F, &its);
+        if (st == MKC_OK || st == MKC_NOT_CONVERGED) {
+            c->sigma[i] = (mkc_real)s_new;
+            c->d[i] = (mkc_real)d_new;
+            Fsum += F;
+        }
+    }
+    c->fst[MKC_S_LAST_F] = (mkc_real)Fsum;
+    c->cnt[MKC_C_ESTEPS] += 1;
+}
+
+/* First solve once min_samples are in: WLS (sigma = inf) on the window, then Algorithm 1. */
+static int initialise_window(mkc_core_t *c)
+{
+    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
+    int count = (int)c->cnt[MKC_C_COUNT];
+    int p, q, s, i, j, st;
+    mkc_acc cond;
+    mkc_real buf[MKC_N];
+    for (p = 0; p < n; p++) {
+        c->b[p] = AC(0.0);
+        for (q = 0; q < n; q++)
+            c->A[p][q] = AC(0.0);
+    }
+    for (s = 0; s < count; s++) {
+        for (i = 0; i < m; i++) {
+            mkc_real wd = c->d[i] > RC(0.0) ? RC(1.0) * (RC(1.0) / (c->d[i] * c->d[i])) : RC(1.0);
+            row_update(c->A, c->b, mkc__row(c, s, i, buf), target(c, s, i), (mkc_acc)wd, n);
+        }
+    }
+    st = solve_window(c, &cond);
+    c->fst[MKC_S_COND] = (mkc_real)cond;
+    if (st != MKC_OK) {
+        c->cnt[MKC_C_SINGULAR] += 1;
+        return st;
+    }
+    /* d unset (<= 0): start from the RMS of the WLS residuals; the first E-step refines it */
+    for (i = 0; i < m; i++) {
+        if (!(c->d[i] > RC(0.0))) {
+            mkc_acc acc = AC(0.0);
+            for (s = 0; s < count; s++) {
+                const mkc_real *x = mkc__row(c, s, i, buf);
+                mkc_real r = target(c, s, i);
+                for (j = 0; j < n; j++)
+                    r -= x[j] * c->theta[j];
+                acc += (mkc_acc)r * (mkc_acc)r;
+            }
+            c->d[i] = (mkc_real)mkc__max_a(sqrt(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
+        }
+    }
+    return mkc__rebuild(c);
+}
+
+/* Forget sigma, d and theta and re-initialise from the window (WLS, then Algorithm 1). */
+int mkc__restart(mkc_core_t *c)
+{
+    int i;
+    c->cnt[MKC_C_RESTARTS] += 1;
+    for (i = 0; i < ICFG(c, MKC_I_M); i++) {
+        c->sigma[i] = FCFG(c, MKC_F_SIG_START);
+        c->d[i] = RC(-1.0);
+        c->Hes[i][0] = EC(0.0);
+        c->Hes[i][1] = EC(0.0);
+        c->Hes[i][2] = EC(0.0);
+    }
+    return initialise_window(c);
+}
+
+/* Batch MKC-EM (Algorithm 3) on the window from scratch: restart() (WLS, then Algorithm 1 at the
+ * start bandwidth), then `rounds` E-step + fixed-point rounds. Returns the last status. */
+int mkc__cold_start(mkc_core_t *c, int rounds)
+{
+    int st = mkc__restart(c), r;
+    for (r = 0; r < rounds; r++) {
+        if (st != MKC_OK && st != MKC_NOT_CONVERGED)
+            return st;
+        mkc__estep_window(c);
+        st = rebuild_with(c, 1);
+    }
+    return st;
+}
+
+/* Feed one sample (xk: m x n row-major, yk: m) into window slot `slot` (-1: the ring buffer's
+ * head). Returns MKC_OK, MKC_NOT_CONVERGED, MKC_SINGULAR, MKC_WARMING_UP or MKC_REJECTED. The
+ * caller has checked the sample (finite, bounded). */
+int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int slot)
+{
+    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M), W = ICFG(c, MKC_I_W);
+    int i, j, ready, st;
+    mkc_acc cond;
+    mkc_real buf[MKC_N];
+    if (slot < 0) {
+        slot = (int)c->cnt[MKC_C_HEAD];
+        c->cnt[MKC_C_HEAD] = (slot + 1) % W;
+    }
+    c->cnt[MKC_C_LAST_SLOT] = slot;
+    if (slot < c->cnt[MKC_C_COUNT]) {
+        /* replace: subtract exactly what this slot added */
+        for (i = 0; i < m; i++)
+            if (c->C[slot][i] != RC(0.0))
+                row_update(c->A, c->b, mkc__row(c, slot, i, buf), target(c, slot, i), -(mkc_acc)c->C[slot][i], n);
+    } else {
+        c->cnt[MKC_C_COUNT] += 1;
+    }
+    ready = c->cnt[MKC_C_ESTEPS] > 0 || c->cnt[MKC_C_FP_ITERS] > 0;
+    store_row(c, slot, xk, yk);
+    for (i = 0; i < m; i++) {
+        mkc_real r = yk[i], cc;
+        for (j = 0; j < n; j++)
+            r -= xk[i * n + j] * c->theta[j];
+        cc = ready ? exp(-r * r * weight_exponent_scale(c->sigma[i], c->d[i])) * (RC(1.0) / (c->d[i] * c->d[i]))
+                   : RC(0.0);
+        c->C[slot][i] = cc;
+        if (cc != RC(0.0))
+            row_update(c->A, c->b, xk + i * n, yk[i], (mkc_acc)cc, n);
+    }
+    c->cnt[MKC_C_SEEN] += 1;
+    c->cnt[MKC_C_SINCE] += 1;
+    if (c->cnt[MKC_C_COUNT] < ICFG(c, MKC_I_MIN_SAMPLES)) {
+        c->cnt[MKC_C_STATUS] = MKC_WARMING_UP;
+        return MKC_WARMING_UP;
+    }
+    if (!ready) {
+        st = initialise_window(c);
+        if (st != MKC_OK && st != MKC_NOT_CONVERGED) {
+            c->cnt[MKC_C_STATUS] = st;
+            return st;
+        }
+        c->cnt[MKC_C_SINCE] = ICFG(c, MKC_I_K);        /* run the first E-step now */
+    }
+    if (c->cnt[MKC_C_SINCE] >= ICFG(c, MKC_I_K)) {
+        c->cnt[MKC_C_SINCE] = 0;
+        mkc__estep_window(c);
+        st = rebuild_with(c, 1);
+        if (st != MKC_OK && st != MKC_NOT_CONVERGED) {
+            /* Recovery: restart Algorithm 3 on the window from WLS and the start bandwidth, so a
+             * stream never stays stuck on a degenerate estimate (its weights would all be ~0). */
+            st = mkc__restart(c);
+        }
+    } else {
+        int64_t age = c->cnt[MKC_C_FACTOR_AGE];
+        st = MKC_OK;
+        if (age >= 0 && age < ICFG(c, MKC_I_REFACTOR) && refine_theta(c)) {
+            c->cnt[MKC_C_FACTOR_AGE] = age + 1;
+        } else {
+            st = solve_window(c, &cond);
+            c->fst[MKC_S_COND] = (mkc_real)cond;
+            if (st != MKC_OK)
+                c->cnt[MKC_C_SINGULAR] += 1;
+        }
+    }
+    c->cnt[MKC_C_STATUS] = st;
+    return st;
+}
+
+/* ---- initialisation (state.py StreamConfig / allocate) ---- */
+
+int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,
+                   const mkc_real *theta0, int rows)
+{
+    int i, n = cfg->n, m = cfg->m, W = cfg->window, K = cfg->estep_every, need, refactor;
+    unsigned char *p = (unsigned char *)c;
+    size_t k;
+    if (n < 1 || m < 1 || n > MKC_N || m > MKC_M || W > MKC_W || W < (n > 2 ? n : 2) || K < 1 ||
+        cfg->fp_rounds < 0 || cfg->estep_max_iter < 0 || cfg->refactor_every < 0 || cfg->min_samples < 0)
+        return MKC_BAD_INPUT;
+    if (!(cfg->sigma_lo > 0.0 && cfg->sigma_lo < cfg->sigma_hi) || !(cfg->d_lo > 0.0 && cfg->d_lo < cfg->d_hi) ||
+        !(cfg->a_factor > 0.0) || !isfinite(cfg->a) || !(cfg->estep_gtol >= 0.0) || !(cfg->fp_tol >= 0.0) ||
+        !(cfg->sigma_start > 0.0) || !isfinite(cfg->sigma_hi) || !isfinite(cfg->d_hi) || !isfinite(cfg->sigma_start))
+        return MKC_BAD_INPUT;
+    for (i = 0; i < m; i++) {
+        if (sigma0 && !(sigma0[i] > RC(0.0) && isfinite(sigma0[i])))
+            return MKC_BAD_INPUT;
+        if (d0 && !(d0[i] > RC(0.0) && isfinite(d0[i])))
+            return MKC_BAD_INPUT;
+    }
+    if (theta0)
+        for (i = 0; i < n; i++)
+            if (!isfinite(theta0[i]))
+                return MKC_BAD_INPUT;
+    for (k = 0; k < sizeof(mkc_core_t); k++)       /* all zero, as numpy.zeros */
+        p[k] = 0;
+    if (cfg->min_samples > 0) {
+        need = cfg->min_samples < W ? cfg->min_samples : W;
+    } else {
+        int eq = 2 * n > n + 8 ? 2 * n : n + 8;
+        need = (eq + m - 1) / m;                      /* ceil: equations, not samples */
+        need = need < W ? need : W;
+    }
+    if (cfg->refactor_every > 0) {
+        refactor = cfg->refactor_every;
+    } else {
+        int w8 = W / 8 > 1 ? W / 8 : 1;
+        refactor = K < w8 ? K : w8;
+    }
+    c->icfg[MKC_I_N] = n;
+    c->icfg[MKC_I_M] = m;
+    c->icfg[MKC_I_W] = W;
+    c->icfg[MKC_I_K] = K;
+    c->icfg[MKC_I_FP_ROUNDS] = cfg->fp_rounds;
+    c->icfg[MKC_I_ES_MAX_ITER] = cfg->estep_max_iter;
+    c->icfg[MKC_I_MIN_SAMPLES] = need;
+    c->icfg[MKC_I_REFACTOR] = refactor;
+    c->fcfg[MKC_F_SIG_LO] = (mkc_real)cfg->sigma_lo;
+    c->fcfg[MKC_F_SIG_HI] = (mkc_real)cfg->sigma_hi;
+    c->fcfg[MKC_F_DLO] = (mkc_real)cfg->d_lo;
+    c->fcfg[MKC_F_DHI] = (mkc_real)cfg->d_hi;
+    c->fcfg[MKC_F_AFAC] = (mkc_real)cfg->a_factor;
+    c->fcfg[MKC_F_FIXED_A] = (mkc_real)cfg->a;
+    c->fcfg[MKC_F_ES_GTOL] = (mkc_real)cfg->estep_gtol;
+    c->fcfg[MKC_F_FP_TOL] = (mkc_real)cfg->fp_tol;
+    c->fcfg[MKC_F_SIG_START] = (mkc_real)cfg->sigma_start;
+    c->rows = rows;
+    for (i = 0; i < m; i++) {
+        c->sigma[i] = sigma0 ? sigma0[i] : RC(MKC_DEF_SIGMA0);
+        c->d[i] = d0 ? d0[i] : RC(-1.0);
+    }
+    if (theta0)
+        for (i = 0; i < n; i++)
+            c->theta[i] = theta0[i];
+    c->cnt[MKC_C_STATUS] = MKC_WARMING_UP;
+    c->fst[MKC_S_COND] = RC(HUGE_VAL);
+    return MKC_OK;
+}

@@ -1,0 +1,274 @@
+/* test_c: the C port's self-test, without Python (make check; also built with sanitizers and run
+ * under valgrind). The cross-check against the Python reference is tests/test_firmware.py.
+ *
+ *   - a synthetic stream is calibrated and the accepted calibration is close to the truth
+ *   - bad input (NaN, inf, huge values, a stream that never moves, a rotation about one axis, all-
+ *     zero regressors, bad configurations) gives status codes, never a crash or a NaN in the state
+ */
+#include <float.h>
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "mkc.h"
+#include "../tools/synth.h"
+
+#define RC(x) ((mkc_real)(x))
+static const double NAN_D = NAN;
+
+static int failures = 0, checks = 0;
+
+#define CHECK(cond, ...)                                                 \
+    do {                                                                 \
+        checks++;                                                        \
+        if (!(cond)) {                                                   \
+            failures++;                                                  \
+            printf("FAIL %s:%d: ", __FILE__, __LINE__);                  \
+            printf(__VA_ARGS__);                                         \
+            printf("\n");                                                \
+        }                                                                \
+    } while (0)
+
+static mkc_mag_t cal;          /* large with host capacities: static, not on the stack */
+static mkc_stream_t st;
+static double buf[1 << 16];
+static double mags[3 * 40000];
+
+/* every float field the estimate depends on is finite (inf only where the reference keeps it: the
+ * condition estimate before the first solve) */
+static int state_finite(const void *state, int kind)
+{
+    static const int fields[] = {MKC_F_THETA, MKC_F_SIGMA, MKC_F_D, MKC_F_A, MKC_F_HES, MKC_F_C, MKC_F_LAST_F,
+                                 MKC_F_NORMAL_A, MKC_F_NORMAL_B, MKC_F_L, MKC_F_DEQ, MKC_F_XS, MKC_F_TPREV, MKC_F_X};
+    size_t f;
+    int k, n;
+    for (f = 0; f < sizeof(fields) / sizeof(fields[0]); f++) {
+        n = mkc_get(state, kind, fields[f], buf, (int)(sizeof(buf) / sizeof(buf[0])));
+        for (k = 0; k < n; k++)
+            if (!isfinite(buf[k])) {
+                printf("  field %d entry %d is %g\n", fields[f], k, buf[k]);
+                return 0;
+            }
+    }
+    if (kind == 1) {
+        n = mkc_get(state, 1, MKC_F_RAW, buf, (int)(sizeof(buf) / sizeof(buf[0])));
+        for (k = 0; k < n; k++)
+            if (!isfinite(buf[k]))
+                return 0;
+        n = mkc_get(state, 1, MKC_F_C0S0, buf, 4);
+        for (k = 0; k < n; k++)
+            if (!isfinite(buf[k]))
+                return 0;
+    }
+    n = mkc_get(state, kind, MKC_F_COND, buf, 1);
+    return n == 1 && !isnan(buf[0]);
+}
+
+static void mag_init(int window)
+{
+    mkc_mag_config cfg;
+    mkc_mag_config_default(&cfg);
+    cfg.stream.window = window;
+    CHECK(mkc_mag_init(&cal, &cfg) == MKC_OK, "mkc_mag_init");
+}
+
+static void push_all(const double *m, long T)
+{
+    long t;
+    for (t = 0; t < T; t++)
+        mkc_mag_push(&cal, (mkc_real)m[3 * t], (mkc_real)m[3 * t + 1], (mkc_real)m[3 * t + 2]);
+}
+
+static void test_synthetic_calibration(void)
+{
+    const mkc_mag_calibration *acc;
+    long T = 12000, k;
+    double worst = 0.0;
+    mkc_real out[3], in[3];
+    mag_init(256);
+    synth_mag(mags, T, 1, 0.1, 7);
+    CHECK(mkc_mag_apply(&cal, in, out) == MKC_NOT_CALIBRATED, "apply before any acceptance");
+    push_all(mags, T);
+    acc = mkc_mag_get_calibration(&cal, 1);
+    CHECK(acc != NULL, "a calibration is accepted on a 10%% burst sweep");
+    if (!acc)
+        return;
+    for (k = 0; k < 3; k++)
+        CHECK(fabs((double)acc->hard_iron[k] - SYNTH_B[k]) < 0.5, "hard iron %d: %g vs %g", (int)k,
+              (double)acc->hard_iron[k], SYNTH_B[k]);
+    CHECK(fabs((double)acc->field - 50.0 * cbrt(1.10 * 0.92 * 0.99)) < 1.5, "field %g", (double)acc->field);
+    /* noise-free points of the true ellipsoid map to a sphere */
+    for (k = 0; k < 200; k++) {
+        double u[3] = {cos(0.1 * (double)k) * sin(0.07 * (double)k), sin(0.1 * (double)k) * sin(0.07 * (double)k),
+                       cos(0.07 * (double)k)}, nrm;
+        int i;
+        for (i = 0; i < 3; i++)
+            in[i] = (mkc_real)(50.0 * (SYNTH_SINV[i][0] * u[0] + SYNTH_SINV[i][1] * u[1] + SYNTH_SINV[i][2] * u[2]) +
+                               SYNTH_B[i]);
+        CHECK(mkc_mag_apply(&cal, in, out) == MKC_OK, "apply");
+        nrm = sqrt((double)(out[0] * out[0] + out[1] * out[1] + out[2] * out[2]));
+        if (fabs(nrm / (double)acc->field - 1.0) > worst)
+            worst = fabs(nrm / (double)acc->field - 1.0);
+    }
+    CHECK(worst < 0.01, "calibrated norms within 1%% of F (worst %g)", worst);
+    CHECK(state_finite(&cal, 1), "state finite after a good stream");
+}
+
+static void test_bad_samples(void)
+{
+    long T = 6000, t, rejected = 0;
+    int64_t samples, bad;
+    synth_mag(mags, T, 1, 0.0, 11);
+    mag_init(256);
+    for (t = 0; t < T; t++) {
+        double x = mags[3 * t], y = mags[3 * t + 1], z = mags[3 * t + 2];
+        int s, expect_reject = 0;
+        if (t % 50 == 3) {
+            y = NAN;
+            expect_reject = 1;
+        } else if (t % 97 == 5) {
+            x = -HUGE_VAL;
+            expect_reject = 1;
+        } else if (t % 131 == 7) {
+            z = 1e300;                /* beyond MKC_MAX_ABS_INPUT in either precision */
+            expect_reject = 1;
+        } else if (t % 173 == 9) {
+            x = 1e6;                  /* huge but accepted as data (a burst the kernel down-weights) */
+        }
+        s = mkc_mag_push(&cal, (mkc_real)x, (mkc_real)y, (mkc_real)z);
+        if (expect_reject) {
+            rejected++;
+            CHECK(s == MKC_REJECTED, "sample %ld: status %d, expected MKC_REJECTED", t, s);
+        } else {
+            CHECK(s >= MKC_OK && s <= MKC_REJECTED, "sample %ld: status %d", t, s);
+        }
+    }
+    mkc_mag_counts(&cal, &samples, &bad);
+    CHECK(bad == rejected && samples == T, "counts: %lld bad of %lld, expected %ld of %ld", (long long)bad,
+          (long long)samples, rejected, T);
+    CHECK(state_finite(&cal, 1), "state finite after NaN/inf/huge samples");
+    CHECK(mkc_mag_get_calibration(&cal, 1) != NULL, "still calibrates through the bad samples");
+}
+
+static void test_degenerate_streams(void)
+{
+    long T = 3000, t;
+    int s;
+    /* the sensor never moves */
+    mag_init(128);
+    for (t = 0; t < T; t++) {
+        s = mkc_mag_push(&cal, RC(31.0), RC(-4.0), RC(17.5));
+        CHECK(s >= MKC_OK && s <= MKC_REJECTED, "constant stream: status %d", s);
+    }
+    CHECK(mkc_mag_get_calibration(&cal, 1) == NULL, "a constant stream is never accepted");
+    CHECK(state_finite(&cal, 1), "state finite on a constant stream");
+    /* rotation about one axis only */
+    mag_init(256);
+    for (t = 0; t < 5000; t++) {
+        double a = 0.025 * (double)t;
+        mkc_mag_push(&cal, (mkc_real)(30.0 * cos(a) + 5.0), (mkc_real)(30.0 * sin(a) - 3.0), RC(20.0));
+    }
+    CHECK(mkc_mag_get_calibration(&cal, 1) == NULL, "a planar rotation is never accepted");
+    CHECK(state_finite(&cal, 1), "state finite on a planar rotation");
+    /* all zeros, then tiny values */
+    mag_init(64);
+    for (t = 0; t < 2000; t++)
+        mkc_mag_push(&cal, t < 1000 ? RC(0.0) : (mkc_real)(1e-30 * (double)(t % 7)), RC(0.0), RC(0.0));
+    CHECK(state_finite(&cal, 1), "state finite on zeros and denormal-sized values");
+    /* only NaN: nothing is ever gathered */
+    mag_init(64);
+    for (t = 0; t < 500; t++)
+        CHECK(mkc_mag_push(&cal, RC(NAN_D), RC(NAN_D), RC(NAN_D)) == MKC_REJECTED, "NaN stream");
+    CHECK(state_finite(&cal, 1), "state finite on a NaN stream");
+}
+
+static void test_generic_stream(void)
+{
+    mkc_config cfg;
+    mkc_real x[8], y[2];
+    long t;
+    int s, i, singular = 0;
+    synth_rng r;
+    r.s = 99;
+    mkc_config_default(&cfg, 4, 2);
+    cfg.window = 64;
+    cfg.estep_every = 8;
+    CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_OK, "init 4x2");
+    /* all-zero regressors: nothing can be solved */
+    for (t = 0; t < 200; t++) {
+        for (i = 0; i < 8; i++)
+            x[i] = RC(0.0);
+        y[0] = RC(1.0);
+        y[1] = RC(-1.0);
+        s = mkc_stream_learn_one(&st, x, y, -1);
+        singular += s == MKC_SINGULAR;
+        CHECK(s == MKC_WARMING_UP || s == MKC_SINGULAR, "zero rows: status %d", s);
+    }
+    CHECK(singular > 0, "zero rows report MKC_SINGULAR");
+    CHECK(state_finite(&st, 0), "state finite after singular windows");
+    /* then a real linear stream with outliers, NaN, inf and huge samples */
+    for (t = 0; t < 4000; t++) {
+        for (i = 0; i < 8; i++)
+            x[i] = (mkc_real)synth_normal(&r);
+        y[0] = x[0] - RC(2.0) * x[1] + RC(0.5) * x[2] + x[3] + (mkc_real)(0.1 * synth_normal(&r));
+        y[1] = x[4] - RC(2.0) * x[5] + RC(0.5) * x[6] + x[7] + (mkc_real)(0.1 * synth_normal(&r));
+        if (t % 10 == 0)
+            y[1] += RC(30.0);
+        if (t % 37 == 1)
+            x[2] = RC(NAN_D);
+        if (t % 41 == 2)
+            y[0] = RC(HUGE_VAL);
+        if (t % 43 == 3)
+            x[5] = (mkc_real)1e300;
+        s = mkc_stream_learn_one(&st, x, y, -1);
+        CHECK(s >= MKC_OK && s <= MKC_REJECTED, "linear stream: status %d", s);
+        if (t % 37 == 1 || t % 41 == 2 || t % 43 == 3)
+            CHECK(s == MKC_REJECTED, "bad sample %ld: status %d", t, s);
+    }
+    CHECK(state_finite(&st, 0), "state finite on the linear stream");
+    mkc_get(&st, 0, MKC_F_THETA, buf, 4);
+    CHECK(fabs(buf[0] - 1.0) < 0.05 && fabs(buf[1] + 2.0) < 0.05 && fabs(buf[2] - 0.5) < 0.05 && fabs(buf[3] - 1.0) < 0.05,
+          "theta = (%g, %g, %g, %g), truth (1, -2, 0.5, 1)", buf[0], buf[1], buf[2], buf[3]);
+}
+
+static void test_configuration(void)
+{
+    mkc_config cfg;
+    mkc_mag_config mc;
+    mkc_real bad_sigma[1] = {RC(-1.0)};
+    mkc_config_default(&cfg, 9, 1);
+    cfg.window = MKC_W + 1;
+    CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "window beyond MKC_W");
+    mkc_config_default(&cfg, 9, 1);
+    cfg.window = 4;
+    CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "window < n");
+    mkc_config_default(&cfg, 9, 1);
+    cfg.sigma_lo = 2000.0;
+    CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "sigma_lo > sigma_hi");
+    mkc_config_default(&cfg, 9, 1);
+    cfg.d_hi = NAN;
+    CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "NaN bound");
+    mkc_config_default(&cfg, 9, 1);
+    CHECK(mkc_stream_init(&st, &cfg, bad_sigma, NULL, NULL) == MKC_BAD_INPUT, "negative sigma0");
+    {
+        mkc_real x[9] = {RC(1.0)}, y[1] = {RC(1.0)};
+        CHECK(mkc_stream_learn_one(&st, x, y, -1) == MKC_BAD_INPUT, "a state whose init failed refuses samples");
+    }
+    mkc_mag_config_default(&mc);
+    mc.init_samples = mc.stream.window + 1;
+    CHECK(mkc_mag_init(&cal, &mc) == MKC_BAD_INPUT, "init_samples > window");
+    mkc_mag_config_default(&mc);
+    mc.policy = 7;
+    CHECK(mkc_mag_init(&cal, &mc) == MKC_BAD_INPUT, "unknown policy");
+}
+
+int main(void)
+{
+    test_synthetic_calibration();
+    test_bad_samples();
+    test_degenerate_streams();
+    test_generic_stream();
+    test_configuration();
+    printf("test_c (%s): %d checks, %d failures\n", sizeof(mkc_real) == 8 ? "double" : "float", checks, failures);
+    return failures ? 1 : 0;
+}

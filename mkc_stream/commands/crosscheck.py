@@ -1,0 +1,108 @@
+"""`mkc-stream crosscheck RECORDING`: the Python streaming calibrator beside the C99 port (firmware_ref/).
+
+Both run MagCalibrator's algorithm over the same recording; at every E-step checkpoint the state
+(theta, sigma, d, a, the feature normalisation) and the trial calibration (b, S, F, quality) are
+compared, and the largest relative difference per quantity is reported. Exit 0 when every quantity
+is within its tolerance (mkc_stream.firmware.TOLERANCES) and the decisions agree, 1 on a mismatch,
+2 when the recording cannot be read or the C port cannot be built here.
+
+--precision double (default): the C double build runs free beside the reference; equal to <= 1e-9.
+--precision float: the float build, free-running (reported) and teacher-forced (the pass criterion:
+  started from the reference's state at each checkpoint, its next checkpoint within 1e-4 on theta
+  and the calibration, on every well-posed checkpoint).
+"""
+from __future__ import annotations
+
+import sys
+
+
+def register(subparsers):
+    p = subparsers.add_parser("crosscheck", help="compare the C99 port (firmware_ref/) with the Python calibrator")
+    p.add_argument("recording", help="recording CSV (spec/recording.md); 'demo' for the bundled one")
+    p.add_argument("--window", type=int, default=512, help="samples kept in the window (default 512, as calibrate --stream)")
+    p.add_argument("--estep-every", type=int, default=32, help="E-step every K samples (default 32)")
+    p.add_argument("--precision", choices=("double", "float", "both"), default="double",
+                   help="which C build to compare (default double)")
+    p.add_argument("--json", metavar="PATH", help="write the report as JSON ('-' for stdout)")
+    p.add_argument("--quiet", action="store_true", help="no human report")
+    p.set_defaults(func=cmd_crosscheck)
+
+
+def _fmt(x):
+    return "-" if x is None else f"{x:.3g}"
+
+
+def cmd_crosscheck(args) -> int:
+    from .. import firmware as FW
+    from ..cli import EXIT_OK, EXIT_REJECTED, UsageError, write_json
+    from ..io.recording import RecordingError, read_recording
+
+    try:
+        rec = read_recording(args.recording)
+    except (OSError, RecordingError) as exc:
+        raise UsageError(f"cannot read {args.recording}: {exc}") from exc
+    if args.window < 16 or args.estep_every < 1:
+        raise UsageError("--window must be >= 16 and --estep-every >= 1")
+    precisions = ("double", "float") if args.precision == "both" else (args.precision,)
+    try:
+        for prec in precisions:
+            lib = FW.load(prec)
+            if args.window > lib.W:
+                raise UsageError(f"--window {args.window} is larger than the C build's capacity MKC_W = {lib.W}")
+    except FW.FirmwareUnavailable as exc:
+        raise UsageError(f"the C port is not available here: {exc}") from exc
+    unit = rec.mag_unit
+    mags = rec.mag
+    W, K = args.window, args.estep_every
+    need_state = "float" in precisions
+    py, _ = FW.python_checkpoints(mags, W, K, unit, capture_state=need_state)
+    report = {"recording": str(args.recording), "samples": int(len(mags)), "window": W, "estep_every": K,
+              "reference_feedback": "portable (calib/portable.py)", "checkpoints_python": len(py), "results": {}}
+    ok = True
+    out = sys.stderr if args.json == "-" else sys.stdout
+    for prec in precisions:
+        cc, _ = FW.c_checkpoints(mags, W, K, unit, precision=prec)
+        free = FW.compare_checkpoints(py, cc)
+        res = {"checkpoints_c": len(cc), "free_running": {"max_rel": free.max_rel, "at_sample": free.where,
+                                                          "mismatches": free.mismatches}}
+        if prec == "double":
+            fails = free.failures("double")
+            res["tolerances"] = FW.TOLERANCES["double"]
+        else:
+            seg = FW.segment_comparison(mags, py, W, K, unit, precision="float")
+            res["teacher_forced"] = {"checkpoints": seg.checkpoints_python, "max_rel": seg.max_rel,
+                                     "at_sample": seg.where, "mismatches": seg.mismatches}
+            res["tolerances"] = {k: FW.TOLERANCES["float"][k] for k in FW.CORE_QUANTITIES}
+            fails = seg.failures("float", FW.CORE_QUANTITIES)
+            fails += [m for m in free.mismatches if "python at sample" in m or "count" in m]
+        res["failures"] = fails
+        res["ok"] = not fails
+        ok = ok and not fails
+        report["results"][prec] = res
+        if not args.quiet:
+            print(f"mkc-stream crosscheck: {args.recording} ({len(mags)} samples, window {W}, E-step every {K}; "
+                  f"C {prec} build, Python reference)", file=out)
+            print(f"  checkpoints   : python {len(py)}, C {len(cc)}", file=out)
+            keys = ["theta", "sigma", "d", "a", "c0s0", "hard_iron", "soft_iron", "field", "quality", "condition"]
+            rows = [("free-running", free)] + ([("teacher-forced", seg)] if prec == "float" else [])
+            for label, cmp in rows:
+                print(f"  {label:14s}: " + ", ".join(f"{k} {_fmt(cmp.max_rel.get(k))}" for k in keys), file=out)
+            print(f"  status        : {'OK' if not fails else 'MISMATCH - ' + '; '.join(fails[:4])}", file=out)
+    report["ok"] = ok
+    if args.json:
+        write_json(_jsonable(report), args.json)
+    return EXIT_OK if ok else EXIT_REJECTED
+
+
+def _jsonable(obj):
+    import math
+
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if hasattr(obj, "item"):
+        return _jsonable(obj.item())
+    return obj
