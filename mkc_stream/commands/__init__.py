@@ -6,5 +6,6 @@ Each module listed here defines ``register(subparsers)``, which adds its parsers
 """
 COMMAND_MODULES: list[str] = [
     "mkc_stream.commands.ingest",
+    "mkc_stream.commands.sim",
     "mkc_stream.commands.crosscheck",
 ]

@@ -1,0 +1,319 @@
+"""Which effect closes the gap, and by how much, on held-out blocks.
+
+1. Screen: every testable effect of the library is added alone to the baseline, fitted or
+   estimated on the training blocks, and scored on the held-out blocks (fewer replicas).
+2. Select greedily: the best few candidates are re-scored with all replicas; the best is kept
+   if it pays for its parameters: it must close at least ``MIN_STEP`` of the remaining excess
+   gap and the improvement must survive a bootstrap over held-out blocks (its 5% point > 0).
+   The next round adds each remaining effect to the kept ones (refitted jointly), and so on,
+   until the gap is at the null level, nothing pays, or ``MAX_EFFECTS`` are kept.
+   A stochastic effect that could mimic any slow deterministic one (random walk, coloured noise)
+   pays, in the gap index, the log of how much it widens the replicas (Dawid-Sebastiani), and is
+   preferred to a deterministic effect only when it is clearly better (bootstrap).
+3. Ambiguity: an effect whose gap is not significantly above the selected one's (paired
+   bootstrap), or is itself at the null level, is reported as indistinguishable
+   (``ambiguous_with``); cross_axis and misalignment have the same observable and are always
+   ambiguous with each other.
+4. Shrink = (G0 - G) / (G0 - 1) on held-out blocks with a bootstrap interval; magnitudes in
+   natural units with a bootstrap over training blocks.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..sim.effects import EFFECTS
+from . import gap
+from .engine import CATCH_ALL, Candidate, Engine, Evaluation
+from .forms import FORMS, MeanForm
+from .model import block_normals, bootstrap_theta
+
+MIN_STEP = 0.1
+MAX_EFFECTS = 3
+N_VERIFY = 3
+EXPLAINED = 0.9                 # shrink that counts as explained even when the gap is not at its null level
+PARTIAL = 0.3
+FIRST_ALONE = 0.7               # several weak effects that together mimic a gap are not an explanation
+STOCHASTIC_MARGIN = 0.15        # a catch-all stochastic effect must close this much more than the best
+                                # deterministic one
+
+
+@dataclass
+class EffectResult:
+    name: str
+    testable: bool
+    reason: str
+    selected: bool = False
+    status: str = "not testable"
+    shrink: float | None = None
+    shrink_ci: list | None = None
+    gap: float | None = None
+    magnitude: dict | None = None
+    magnitude_ci: dict | None = None
+    evaluation: Evaluation | None = field(default=None, repr=False)
+    verified: bool = False
+    shrink_given_selected: float | None = None
+
+
+def _resample(rng, blocks, B, n):
+    out = np.zeros((n, B))
+    for i in range(n):
+        pick = rng.choice(blocks, size=blocks.size, replace=True)
+        out[i] = np.bincount(pick, minlength=B)
+    return out
+
+
+class Attribution:
+    def __init__(self, eng: Engine, ev0: Evaluation, thr: float, library, n_boot=100, seed=0, screen_R=20, log=None):
+        self.eng, self.ev0, self.thr = eng, ev0, thr
+        self.library = list(library)
+        self.rng = np.random.default_rng(seed + 7)
+        self.boot = _resample(self.rng, np.arange(eng.frame.n_blocks), eng.frame.n_blocks, n_boot)
+        self.screen_R = min(screen_R, eng.R)
+        self.log = log or (lambda s: None)
+        self._boot_cache = {}
+
+    # -- helpers ------------------------------------------------------------------------------
+    def gap_R(self, ev: Evaluation, R):
+        return ev.G if ev.rep_values.shape[0] == R else self.eng.gap_of(ev, R)
+
+    def boot_gaps(self, ev: Evaluation):
+        key = id(ev)
+        if key not in self._boot_cache:
+            self._boot_cache[key] = (ev, self.eng.boot_gaps(ev, self.boot))
+        return self._boot_cache[key][1]
+
+    def shrink_ci(self, ev_ref, ev):
+        """Bootstrap interval of the shrink; the excess gap it is a fraction of is held at its
+        estimate (resamples with almost no excess would otherwise divide by ~0)."""
+        g0, g1 = self.boot_gaps(ev_ref), self.boot_gaps(ev)
+        ex = ev_ref.G - 1.0
+        if not ex > 0:
+            return None
+        s = (g0 - g1) / ex
+        s = s[np.isfinite(s)]
+        if s.size < 10:
+            return None
+        return [float(np.percentile(s, 5)), float(np.percentile(s, 95))]
+
+    # -- screening ----------------------------------------------------------------------------
+    def screen(self, ref: Evaluation, names, R):
+        g_ref = self.gap_R(ref, R)
+        out = {}
+        for name in names:
+            cand = self.eng.extend(ref, name)
+            if cand is None:
+                out[name] = (None, None, 0.0)
+                continue
+            ev = self.eng.evaluate(cand, R=R)
+            out[name] = (cand, ev, gap.shrink(g_ref, ev.G))
+            self.log(f"    {name:24s} gap {ev.G:8.3f}  shrink {out[name][2]:+.2f}")
+        return out
+
+    # -- selection ----------------------------------------------------------------------------
+    def run(self, detected: bool):
+        eng, ev0 = self.eng, self.ev0
+        results = {}
+        testable = []
+        for name in self.library:
+            ok, why = EFFECTS[name].testable(eng.base.evidence)
+            results[name] = EffectResult(name, bool(ok), why, status="not testable" if not ok else "not selected")
+            if ok:
+                testable.append(name)
+        self.log(f"  screening {len(testable)} testable effects ({self.screen_R} replicas each)")
+        screened = self.screen(ev0, testable, self.screen_R)
+        singles = {}
+        for name in testable:
+            cand, ev_s, s = screened[name]
+            r = results[name]
+            if ev_s is None:
+                r.shrink, r.status = 0.0, "no estimate"
+                r.reason += "; the data give no estimate of it"
+                continue
+            r.shrink, r.gap, r.evaluation = s, ev_s.G, ev_s
+            singles[name] = cand
+
+        selected, current = [], ev0
+        if detected:
+            remaining = [n for n in testable if n in singles]
+            scores = {n: results[n].shrink for n in remaining}
+            rnd = 0
+            while remaining and len(selected) < MAX_EFFECTS:
+                best = self._round(rnd, current, remaining, scores, singles, results)
+                if best is None:
+                    break
+                name, ev_best = best
+                step = gap.shrink(current.G, ev_best.G)
+                lo = float(np.percentile(self.boot_gaps(current) - self.boot_gaps(ev_best), 5))
+                if not (np.isfinite(step) and step >= MIN_STEP and lo > 0):
+                    self.log(f"  {name} does not pay (closes {step:.2f} of the remaining gap, bootstrap 5% {lo:.3g})")
+                    break
+                selected.append(name)
+                current = ev_best
+                remaining.remove(name)
+                self.log(f"  selected {name}: gap {current.G:.3f}")
+                if current.G <= self.thr:
+                    break
+                rnd += 1
+                rs = self.screen(current, remaining, self.screen_R)
+                scores = {n: rs[n][2] for n in rs}
+
+        for n in selected:
+            results[n].selected, results[n].status = True, "selected"
+        ambiguous = self._ambiguity(selected, results, singles) if selected else []
+        for n in ambiguous:
+            results[n].status = "ambiguous"
+        if selected:
+            self._conditional(results, current, selected)
+        self._magnitudes(results, current, selected)
+        return results, selected, ambiguous, current
+
+    def _round(self, rnd, current, remaining, scores, singles, results):
+        """Best candidate of a selection round, re-scored with all replicas.
+
+        Deterministic effects first; a catch-all stochastic effect (random walk, coloured noise)
+        is chosen only when it is clearly better than the best deterministic one (bootstrap),
+        because it can mimic any slow deterministic effect by widening its replicas.
+        """
+        def ok(n):
+            return np.isfinite(scores.get(n, np.nan)) and scores[n] > 0
+
+        det = sorted([n for n in remaining if n not in CATCH_ALL and ok(n)], key=lambda n: -scores[n])[:N_VERIFY]
+        sto = sorted([n for n in remaining if n in CATCH_ALL and ok(n)], key=lambda n: -scores[n])[:1]
+        full = {}
+        for n in det + sto:
+            cand = singles[n] if rnd == 0 else self.eng.extend(current, n)
+            if cand is None:
+                continue
+            full[n] = self.eng.evaluate(cand)
+            self.log(f"  round {rnd + 1}: {n:24s} gap {full[n].G:.3f} (all replicas)")
+            if rnd == 0:
+                self._set_single(results[n], full[n])
+        dets = [n for n in full if n not in CATCH_ALL]
+        # a catch-all stochastic effect is an explanation only when it makes the replicas
+        # indistinguishable from the recording (gap at its null level); closing part of a gap
+        # by widening the replicas says nothing about its cause
+        stos = [n for n in full if n in CATCH_ALL and full[n].G <= self.thr]
+        best_det = min(dets, key=lambda n: full[n].G) if dets else None
+        best_sto = min(stos, key=lambda n: full[n].G) if stos else None
+        if best_det is None and best_sto is None:
+            return None
+        if best_det is None:
+            return best_sto, full[best_sto]
+        if best_sto is not None and full[best_sto].G < full[best_det].G:
+            s_det, s_sto = gap.shrink(current.G, full[best_det].G), gap.shrink(current.G, full[best_sto].G)
+            diff = self.boot_gaps(full[best_det]) - self.boot_gaps(full[best_sto])
+            if s_sto >= s_det + STOCHASTIC_MARGIN and np.percentile(diff, 5) > 0:
+                return best_sto, full[best_sto]
+        return best_det, full[best_det]
+
+    def _set_single(self, r, ev):
+        r.shrink, r.gap, r.evaluation, r.verified = gap.shrink(self.ev0.G, ev.G), ev.G, ev, True
+        r.shrink_ci = self.shrink_ci(self.ev0, ev)
+
+    def _ambiguity(self, selected, results, singles):
+        """Effects the data cannot tell apart from the first selected one."""
+        first = selected[0]
+        ra = results[first]
+        ev_a = ra.evaluation
+        out = []
+        for name, r in results.items():
+            if name == first or not r.testable or r.evaluation is None or name in selected:
+                continue
+            if FORMS[name].alias_of == first or FORMS[first].alias_of == name:
+                out.append(name)
+                continue
+            if not (r.shrink is not None and np.isfinite(r.shrink) and r.shrink > 0.5 * ra.shrink):
+                continue
+            if not r.verified:
+                self._set_single(r, self.eng.evaluate(singles[name]))
+            diff = self.boot_gaps(r.evaluation) - self.boot_gaps(ev_a)
+            if r.gap <= self.thr or np.percentile(diff, 5) <= 0:
+                out.append(name)
+        return out
+
+    def _conditional(self, results, final, selected):
+        """For effects left out: how much more of the excess gap they would close on top of the
+        selected ones (what a user adding them to the simulator would gain)."""
+        g0 = self.ev0.G
+        for name, r in results.items():
+            if name in selected or r.evaluation is None:
+                continue
+            if not (r.shrink is not None and np.isfinite(r.shrink) and r.shrink > 0.2):
+                r.shrink_given_selected = 0.0 if r.testable else None
+                continue
+            cand = self.eng.extend(final, name)
+            if cand is None:
+                r.shrink_given_selected = 0.0
+                continue
+            ev = self.eng.evaluate(cand, R=self.screen_R)
+            r.shrink_given_selected = float((self.gap_R(final, self.screen_R) - ev.G) / max(g0 - 1.0, 1e-9))
+
+    def _magnitudes(self, results, final: Evaluation, selected):
+        eng = self.eng
+        for name, r in results.items():
+            if r.evaluation is None:
+                continue
+            ev = final if name in selected else r.evaluation
+            cand = ev.cand
+            if name in cand.estimated:
+                p = cand.estimated[name]
+                r.magnitude = FORMS[name].magnitude(eng.env, p)
+                if r.verified or name in selected:
+                    r.magnitude_ci = self._estimated_ci(name, ev)
+                continue
+            idx = [i for i, t in enumerate(cand.terms) if t.name == name]
+            if not idx:
+                continue
+            i = idx[0]
+            term = cand.terms[i]
+            form = FORMS[name]
+            r.magnitude = form.magnitude(eng.env, term.design, ev.fit.theta[i])
+            if r.verified or name in selected:
+                A_b, g_b = block_normals(ev.fit, eng.frame.block, eng.frame.n_blocks)
+                train = np.flatnonzero(eng.train_mult > 0)
+                vals = []
+                for m in _resample(self.rng, train, eng.frame.n_blocks, 200):
+                    th = bootstrap_theta(ev.fit, A_b, g_b, m)[i]
+                    vals.append(form.magnitude(eng.env, term.design, th)["value"])
+                r.magnitude_ci = {"value": [float(np.percentile(vals, 5)), float(np.percentile(vals, 95))],
+                                  "unit": r.magnitude.get("unit")}
+
+    def _estimated_ci(self, name, ev):
+        eng = self.eng
+        form = FORMS[name]
+        base_ev = self.ev0              # the estimate of the effect alone, from the baseline's residuals
+        vals = []
+        train = np.flatnonzero(eng.train_mult > 0)
+        for m in _resample(self.rng, train, eng.frame.n_blocks, 40):
+            try:
+                p = form.estimate(eng.env, base_ev, m)
+            except Exception:  # noqa: BLE001 - a resample can be degenerate
+                p = None
+            if p is not None:
+                vals.append(form.magnitude(eng.env, p)["value"])
+        if len(vals) < 10:
+            return None
+        return {"value": [float(np.percentile(vals, 5)), float(np.percentile(vals, 95))],
+                "unit": form.magnitude(eng.env, ev.cand.estimated[name]).get("unit")}
+
+
+def verdict(detected, g0, g_final, selected, thr, first_shrink):
+    """no_gap; explained (the selected effects bring the held-out gap to its null level, or close
+    at least EXPLAINED of it, and the first of them alone closes at least FIRST_ALONE);
+    partially_explained (they close at least PARTIAL); unexplained."""
+    if not detected:
+        return "no_gap", float("nan")
+    s = gap.shrink(g0, g_final) if selected else 0.0
+    if not selected:
+        return "unexplained", s
+    closed = g_final <= thr or (np.isfinite(s) and s >= EXPLAINED)
+    if closed and np.isfinite(first_shrink) and first_shrink >= FIRST_ALONE:
+        return "explained", s
+    if np.isfinite(s) and s >= PARTIAL:
+        return "partially_explained", s
+    return "unexplained", s
+
+
+__all__ = ["Attribution", "EffectResult", "verdict", "Candidate", "MeanForm"]

@@ -1,0 +1,223 @@
+"""The baseline model: what a plain simulator knows about the sensor, fitted to the recording.
+
+Baseline = the MKC-EM calibration (b, S, F) refined by the same Gauss-Newton fit the effects
+use, the dip angle when there is an accelerometer, white noise per axis, disturbance bursts
+(their rate, length and size taken from where the robust fit down-weighted samples), and a
+regular clock (plus the timestamp quantum, if the timestamps lie on one).
+
+Noise level: from third differences (m_{k+3} - 3 m_{k+2} + 3 m_{k+1} - m_k, variance 20 sigma^2
+for white noise), robustly (MAD). Third differences cancel the motion (to second order) and
+anything slow, so the estimate is the sensor's white noise even when slow effects are present;
+those then show up as a gap instead of being absorbed into a larger noise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..sim.effects.base import Evidence
+from ..sim.sensor import SensorModel
+from ..sim.trajectory import Trajectory, moving_average
+from .frame import DiagnoseError, Frame
+from .model import ModelFit, State, channels, fit_model, n_channels
+
+
+@dataclass
+class Baseline:
+    fit: ModelFit                # on all samples
+    fit_train: ModelFit          # on the training blocks
+    sigma: np.ndarray            # (C,) channel noise scale
+    sigma_axis: np.ndarray       # (3,) white noise per raw axis
+    sensor: SensorModel          # for replicas
+    traj: Trajectory             # the recording's directions and times
+    valid: np.ndarray            # (N, C)
+    lattice: dict                # q (3,), phase (3,), strength (3,)
+    clock: dict                  # dt0, quantum, phase
+    evidence: Evidence
+    bursts: dict
+    ellipsoid: object
+
+
+def robust_sd(x) -> float:
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size < 2:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+def hf_sigma(x) -> float:
+    """White-noise sigma from third differences (robust)."""
+    d3 = x[3:] - 3 * x[2:-1] + 3 * x[1:-2] - x[:-3]
+    return robust_sd(d3) / np.sqrt(20.0)
+
+
+def detect_lattice(x: np.ndarray, max_n: int = 20000):
+    """(q, phase, strength): the step of a lattice the values lie on, or strength ~ 0 when none."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.size > max_n:
+        x = x[:: int(np.ceil(x.size / max_n))]
+    u = np.unique(x)
+    if u.size < 5:
+        return float("nan"), 0.0, 0.0
+    d = np.diff(u)
+    d = d[d > 1e-12 * max(1.0, float(np.abs(u).max()))]
+    if d.size < 3:
+        return float("nan"), 0.0, 0.0
+    q0 = float(np.percentile(d, 5))
+    q = float(np.median(d[d < 1.5 * q0]))
+    ph = np.exp(2j * np.pi * x / q)
+    z = ph.mean()
+    return q, float(np.angle(z) / (2 * np.pi) * q), float(abs(z))
+
+
+MERGE_GAP = 10   # samples: down-weighted runs closer than this are one burst (a burst's norm residual
+                 # dips below the cut wherever its offset happens to be perpendicular to the field)
+
+
+BURST_WINDOW = 151   # samples: a burst is an excursion from the residual's running median over this window
+
+
+def axis_noise(fit, s_hf):
+    """White noise per raw axis, from the norm channel itself: the third differences of the norm
+    residual have variance 20 sum_j (S^T v)_j^2 sigma_j^2, and v turns, so a least-squares fit of
+    their squares on (S^T v)_j^2 separates the axes. (The raw axes' own differences would be
+    cheaper but carry the motion, differently on each axis.) Isotropic when the fit is not
+    determined or not positive."""
+    e, ok = fit.e[:, 0], fit.inlier[:, 0]
+    JS2 = (fit.v @ fit.state.S) ** 2
+    d3 = e[3:] - 3 * e[2:-1] + 3 * e[1:-2] - e[:-3]
+    good = ok[3:] & ok[2:-1] & ok[1:-2] & ok[:-3]
+    y = d3[good] ** 2 / 20.0
+    X = 0.25 * (JS2[3:] + JS2[2:-1] + JS2[1:-2] + JS2[:-3])[good]
+    iso = float(np.sqrt(np.mean(np.sum(JS2, axis=1))))
+    if y.size > 200:
+        cap = np.percentile(y, 99)                       # keep the odd burst edge out
+        keep = y <= cap
+        coef, *_ = np.linalg.lstsq(X[keep], y[keep], rcond=None)
+        if np.all(coef > 0):
+            sig = np.sqrt(coef)
+            pred = np.sqrt(np.mean(JS2 @ coef))
+            return sig * s_hf / pred
+    return np.full(3, s_hf / iso)
+
+
+def estimate_bursts(e, valid, sigma):
+    """Disturbance bursts: runs of samples more than 4 sigma away from the residual's running
+    median (merged over short gaps), with each run's length and median |excursion|.
+
+    Against the running median, not zero: a slow unmodelled effect (a wander, a drift, a
+    temperature offset) moves the residual for minutes and is not a burst; counting it as bursts
+    would give the replicas spurious disturbances and hide the effect."""
+    from scipy.ndimage import median_filter
+
+    x = np.where(valid, e, np.nan)
+    fill = np.where(np.isfinite(x), x, np.nanmedian(x) if np.isfinite(x).any() else 0.0)
+    dev = e - median_filter(fill, size=min(BURST_WINDOW, max(3, e.size // 4 * 2 + 1)), mode="nearest")
+    out = valid & (np.abs(dev) > 4.0 * sigma)
+    e = dev
+    idx = np.flatnonzero(out)
+    if idx.size == 0:
+        return {"fraction": 0.0, "lengths": (), "sizes": (), "count": 0}
+    splits = np.flatnonzero(np.diff(idx) > MERGE_GAP) + 1
+    runs = [(int(r[0]), int(r[-1]) + 1, r.size) for r in np.split(idx, splits)]
+    # a burst lasts (several excursions) or is large; a lone 4-5 sigma sample is the noise's own
+    # tail, which the replicas' noise already has
+    runs = [(a, b) for a, b, k in runs if k >= 3 or np.abs(dev[a:b]).max() > 8.0 * sigma]
+    if not runs:
+        return {"fraction": 0.0, "lengths": (), "sizes": (), "count": 0}
+    lengths = tuple(b - a for a, b in runs)
+    sizes = tuple(round(float(np.median(np.abs(e[a:b]))), 6) for a, b in runs)
+    return {"fraction": float(sum(lengths)) / e.size, "lengths": lengths, "sizes": sizes, "count": len(runs)}
+
+
+class BurstReplica:
+    """Replica bursts: the recording's own bursts (lengths and sizes) at random places, each a
+    constant raw offset in a random direction (an offset d shows about |d|/2 in the norm)."""
+
+    name, stage = "bursts", "offset"
+
+    def __init__(self, bursts):
+        self.lengths, self.sizes = bursts["lengths"], bursts["sizes"]
+
+    def apply(self, ctx, params):
+        n = ctx.n
+        used = np.zeros(n, dtype=bool)
+        for L, size in zip(self.lengths, self.sizes):
+            L = int(min(L, n // 4))
+            for _ in range(50):
+                a = int(ctx.rng.integers(0, max(1, n - L)))
+                if not used[max(0, a - 5):a + L + 5].any():
+                    break
+            d = ctx.rng.normal(size=3)
+            ctx.m[a:a + L] += 2.0 * size * d / np.linalg.norm(d)
+            used[a:a + L] = True
+
+
+def _rotation_rate(frame: Frame, v: np.ndarray) -> float:
+    if frame.gyro is not None:
+        w = np.linalg.norm(frame.gyro, axis=1)
+        w = w[np.isfinite(w)]
+        return float(np.percentile(w, 90)) if w.size else 0.0
+    vs = moving_average(v, 5)
+    vs /= np.linalg.norm(vs, axis=1, keepdims=True)
+    ang = np.arccos(np.clip(np.sum(vs[1:] * vs[:-1], axis=1), -1, 1))
+    dt = np.maximum(np.diff(frame.t), 1e-9)
+    return float(np.percentile(ang / dt, 90))
+
+
+def fit_baseline(frame: Frame) -> Baseline:
+    from ..calib.ellipsoid import EllipsoidError
+    from ..calib.fit import fit_ellipsoid
+    from ..calib.quality import sphere_coverage
+
+    try:
+        ell = fit_ellipsoid(frame.m, "mkc-em")
+    except EllipsoidError as exc:
+        raise DiagnoseError(f"the baseline calibration failed: {exc}") from exc
+    C = n_channels(frame)
+    st = State(ell.hard_iron.copy(), ell.soft_iron.copy(), float(ell.field), 0.0)
+    ch = channels(frame.m, frame, st)
+    valid = np.ones((frame.n, C), dtype=bool)
+    if C == 2:
+        valid[:, 1] = frame.acc_ok
+        st.dip0 = float(np.median(ch.r[frame.acc_ok, 1]))
+        ch = channels(frame.m, frame, st)
+    w_ok = ell.weights > 0.5 if ell.weights is not None else np.ones(frame.n, bool)
+    sigma = np.array([robust_sd(ch.r[w_ok, 0])] + ([robust_sd(ch.r[frame.acc_ok, 1])] if C == 2 else []))
+    if not np.all(sigma > 0):
+        raise DiagnoseError("the residuals have no spread (a constant or synthetic signal?)")
+    fit = fit_model(frame, st, [], valid, sigma)
+    # noise scales: white part of the norm channel; robust spread of the dip channel
+    s_hf = hf_sigma(fit.e[fit.valid[:, 0], 0])
+    sigma = np.array([s_hf] + ([robust_sd(fit.e[valid[:, 1], 1])] if C == 2 else []))
+    if not np.all(sigma > 0):
+        raise DiagnoseError("the residual noise is zero: nothing to compare against")
+    fit = fit_model(frame, fit.state, [], valid, sigma, iters=2)
+    fit_train = fit_model(frame, fit.state, [], valid, sigma, fit_mask=frame.train, iters=2)
+
+    sigma_axis = axis_noise(fit, s_hf)
+    bursts = estimate_bursts(fit.e[:, 0], valid[:, 0], sigma[0])
+    sensor = SensorModel(field=fit.state.F, hard_iron=tuple(fit.state.b), soft_iron=fit.state.S,
+                         noise=tuple(sigma_axis), lsb=0.0, burst_fraction=0.0, acc_noise=0.0, gyro_noise=0.0)
+    u = moving_average(fit.v, 5)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    traj = Trajectory(t=frame.t, field_dir=u, acc=None, gyro=None, aux=dict(frame.aux), name="recording")
+
+    lat = [detect_lattice(frame.m[:, j]) for j in range(3)]
+    lattice = {"q": np.array([x[0] for x in lat]), "phase": np.array([x[1] for x in lat]),
+               "strength": np.array([x[2] for x in lat])}
+    tq, tph, tR = detect_lattice(frame.t - frame.t[0])
+    quantum = tq if (tR > 0.9 and np.isfinite(tq) and tq < 0.5 * frame.dt0) else 0.0
+    clock = {"dt0": frame.dt0, "quantum": quantum, "phase": tph if quantum else 0.0, "t0": float(frame.t[0])}
+
+    spans = {}
+    for name, x in frame.aux.items():
+        spans[name] = float(np.percentile(x, 97.5) - np.percentile(x, 2.5))
+    ev = Evidence(n=frame.n, duration=frame.duration, rate=1.0 / frame.dt0, aux_span=spans,
+                  has_acc=frame.acc_unit is not None, has_gyro=frame.gyro is not None,
+                  coverage=sphere_coverage(fit.v), rotation_rate=_rotation_rate(frame, fit.v),
+                  timestamps_real=frame.timestamps_real)
+    return Baseline(fit=fit, fit_train=fit_train, sigma=sigma, sigma_axis=sigma_axis, sensor=sensor, traj=traj,
+                    valid=valid, lattice=lattice, clock=clock, evidence=ev, bursts=bursts, ellipsoid=ell)

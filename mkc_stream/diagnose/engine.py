@@ -1,0 +1,306 @@
+"""Evaluate a model (baseline + effects) against the recording: fit, replicas, panel, gap.
+
+A :class:`Candidate` is a set of effects: mean effects as fitted terms, stochastic/clock/mask
+effects as estimated parameters. :meth:`Engine.evaluate` fits the candidate on some blocks,
+simulates its replicas, projects them through the same fit, and compares the panels on the
+evaluation blocks. Everything the attribution needs afterwards (z-scores, per-block sums for
+bootstraps, the fit) is kept in the :class:`Evaluation`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import gap, panel
+from .baseline import BurstReplica, estimate_bursts
+from .forms import FORMS, Env, MeanForm
+from .model import ModelFit, Term, fit_model, project, quick_rss
+from .replicas import clock_replicas, dip_replicas, norm_replicas
+
+#: Stochastic effects that can mimic any slow deterministic one by widening their replicas.
+CATCH_ALL = ("bias_random_walk", "colored_noise")
+
+
+@dataclass
+class Candidate:
+    terms: list = field(default_factory=list)          # mean effects (Term)
+    estimated: dict = field(default_factory=dict)      # name -> params
+
+    @property
+    def names(self):
+        return [t.name for t in self.terms] + list(self.estimated)
+
+    def plus_term(self, term):
+        return Candidate(self.terms + [term], dict(self.estimated))
+
+    def plus_estimated(self, name, params):
+        est = dict(self.estimated)
+        est[name] = params
+        return Candidate(list(self.terms), est)
+
+
+@dataclass
+class Evaluation:
+    cand: Candidate
+    fit: ModelFit
+    valid: np.ndarray
+    real_bs: dict
+    rep_bs: list
+    rep_e: np.ndarray
+    rep_valid: np.ndarray
+    mult: np.ndarray
+    real_values: np.ndarray
+    rep_values: np.ndarray
+    weights: np.ndarray
+    floors: np.ndarray
+    z: np.ndarray
+    G: float
+    ref_values: np.ndarray | None = None     # replicas without the candidate's stochastic effects
+    e_cf: np.ndarray | None = None           # cross-fitted residual (each block from the fold that did not fit it)
+    inlier_cf: np.ndarray | None = None
+    fits: list | None = None
+
+    # what the estimators of the next effects read (the held-out residual of every block)
+    @property
+    def e(self):
+        return self.e_cf if self.e_cf is not None else self.fit.e
+
+    @property
+    def inlier(self):
+        return self.inlier_cf if self.inlier_cf is not None else self.fit.inlier
+
+
+class Engine:
+    def __init__(self, frame, base, n_replicas=40, seed=0):
+        from .baseline import Baseline  # noqa: F401  (type only)
+
+        self.frame, self.base, self.R, self.seed = frame, base, int(n_replicas), int(seed)
+        self.env = Env(frame, base)
+        extra = {"turn_rate": self._turn_rate()}
+        if frame.acc_unit is not None:
+            extra["dip_rate"] = self._dip_rate()
+        lat = base.lattice
+        q = np.where(lat["strength"] > 0.5, lat["q"], np.maximum(base.sigma_axis, 1e-12))
+        ph = np.where(lat["strength"] > 0.5, lat["phase"], 0.0)
+        tol = np.maximum(0.5 * base.sigma_axis, 0.51 * np.where(lat["strength"] > 0.5, lat["q"], 0.0))
+        rot = None
+        if frame.acc_unit is not None:
+            from .model import channels
+
+            ch = channels(frame.m, frame, base.fit.state)
+            G = FORMS["misalignment"].G(self.env, {})(frame, frame.m, base.fit.state)
+            rot = -np.einsum("nk,nkp->np", ch.J[:, 1], G) / base.sigma[1]
+        self.design = panel.make_design(frame, base.fit.v, base.sigma, extra, q, ph, tol, rot)
+        self._norm_cache = {}
+        self._clock_cache = {}
+        self._design_cache = {}
+        self.train_mult = frame.train_blocks.astype(float)
+        self.all_mult = np.ones(frame.n_blocks)
+        self.labels = None
+        self.gi = None              # the gap index (families, normalisation from the null)
+
+    # -- derived aux signals ------------------------------------------------------------------
+    def _turn_rate(self):
+        if self.frame.gyro is not None:
+            return np.nan_to_num(np.linalg.norm(self.frame.gyro, axis=1))
+        from ..sim.trajectory import moving_average
+
+        v = moving_average(self.base.fit.v, 5)
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        ang = np.arccos(np.clip(np.sum(v[1:] * v[:-1], axis=1), -1, 1)) / np.maximum(np.diff(self.frame.t), 1e-9)
+        return np.concatenate([[ang[0]], ang])
+
+    def _dip_rate(self):
+        """How fast the field direction moves towards gravity, with gravity held still: what a
+        magnetometer sampled late (or early) against the accelerometer turns into a dip error.
+        (The dip itself does not change under rotation: both vectors turn together.)"""
+        from ..sim.trajectory import moving_average
+
+        v = moving_average(self.base.fit.v, 5)
+        vdot = np.gradient(v, self.frame.t, axis=0)
+        return np.sum(vdot * np.nan_to_num(self.frame.acc_unit), axis=1)
+
+    # -- replicas -----------------------------------------------------------------------------
+    def _norm(self, cand: Candidate, R, bursts):
+        noise = [(n, p) for n, p in cand.estimated.items() if FORMS[n].kind in ("noise", "mask")]
+        key = (tuple(sorted(n for n, _ in noise)), R, repr([p for _, p in sorted(noise, key=lambda x: x[0])]),
+               bursts["lengths"], bursts["sizes"])
+        if key not in self._norm_cache:
+            effects = [(BurstReplica(bursts), {})] if bursts["count"] else []
+            for n, p in noise:
+                effects += FORMS[n].replica(self.env, p)
+            sensor = self.base.sensor
+            if "quantization" in cand.estimated:
+                # the white noise measured on quantized data already holds the rounding noise
+                # (lsb^2 / 12): the replicas round again, so their white noise is what is left
+                q = np.nan_to_num(np.asarray(cand.estimated["quantization"]["q"], dtype=float))
+                s2 = np.asarray(sensor.noise) ** 2
+                white = np.sqrt(np.maximum(s2 - q ** 2 / 12.0, 0.05 * s2))
+                sensor = replace(sensor, noise=tuple(white))
+            if len(self._norm_cache) > 24:
+                self._norm_cache.clear()
+            self._norm_cache[key] = norm_replicas(self.frame, self.base, effects, R, self.seed, sensor)
+        return self._norm_cache[key]
+
+    def _clock(self, cand: Candidate, R):
+        clk = [(n, p) for n, p in cand.estimated.items() if FORMS[n].kind == "clock"]
+        key = (repr(sorted(clk, key=lambda x: x[0])), R)
+        if key not in self._clock_cache:
+            effects = []
+            for n, p in clk:
+                effects += FORMS[n].replica(self.env, p)
+            self._clock_cache[key] = clock_replicas(self.frame, self.base, effects, R, self.seed)
+        return self._clock_cache[key]
+
+    def _mask(self, cand: Candidate, raw):
+        ok = np.ones(raw.shape[0], dtype=bool)
+        for n, p in cand.estimated.items():
+            f = FORMS[n]
+            if f.mask is not None:
+                ok &= f.mask(self.env, p, raw)
+        return ok
+
+    # -- evaluation ---------------------------------------------------------------------------
+    def evaluate(self, cand: Candidate, in_sample=False, R=None) -> Evaluation:
+        """Score a candidate. Cross-fitted by default: fitted on the even blocks and scored on the
+        odd ones, and the other way round, so every block is scored by a fit that never saw it
+        (held-out) and no data are wasted. in_sample=True fits and scores on all samples."""
+        frame, base = self.frame, self.base
+        R = self.R if R is None else int(R)
+        valid = base.valid & self._mask(cand, frame.m)[:, None]
+        if in_sample:
+            folds = [np.ones(frame.n, dtype=bool)]
+        else:
+            folds = [frame.train, ~frame.train]
+        fits = [fit_model(frame, base.fit.state, self._choose(cand.terms, valid, f), valid, base.sigma, fit_mask=f,
+                          iters=3) for f in folds]
+        e = fits[0].e.copy()
+        if len(folds) == 2:           # each block's residual from the fit that did not see it
+            e[folds[0]] = fits[1].e[folds[0]]
+        inlier = valid & (np.abs(e) < 4.0 * base.sigma[None, :])
+        # the burst model comes from the candidate's own residual: a baseline that misses an
+        # effect calls the effect's large residuals "bursts"
+        bursts = estimate_bursts(e[:, 0], valid[:, 0], base.sigma[0])
+        real_bs = panel.block_stats(self.design, e, valid, frame.m, frame.t if frame.timestamps_real else None)
+        rep_bs, rep_e, rep_valid = self._replica_stats(cand, fits, folds, e, valid, bursts, R)
+        ref = None
+        if any(n in CATCH_ALL for n in cand.estimated):
+            plain = Candidate(cand.terms, {n: p for n, p in cand.estimated.items() if n not in CATCH_ALL})
+            ref_bs, _, _ = self._replica_stats(plain, fits, folds, e, valid, bursts, R)
+            ref = np.array([panel.evaluate(self.design, bs, self.all_mult).arrays()[0] for bs in ref_bs])
+        if not in_sample:              # the candidate carries the first fold's settings (magnitudes, reports)
+            cand = Candidate(list(fits[0].terms), dict(cand.estimated))
+        ev = self._score(cand, fits[0], valid, real_bs, rep_bs, rep_e, rep_valid, self.all_mult, ref)
+        ev.e_cf, ev.inlier_cf, ev.fits = e, inlier, fits
+        return ev
+
+    def _choose(self, terms, valid, fit_mask):
+        """Nonlinear settings (thermal lags, step time ...) by a grid search on the whole
+        recording, the same for both folds; only the linear parameters are fitted per fold.
+
+        Why the whole recording: a setting is one scalar, but a step inside a held-out block
+        cannot be placed from the training blocks alone (it is anywhere in the gap between
+        them), and the held-out gap would then measure the block layout, not the effect.
+        Choosing on one fold's training blocks and scoring the other fold on them would instead
+        favour the forms with many settings."""
+        fit_mask = np.ones(self.frame.n, dtype=bool)
+        terms = list(terms)
+        for i, t in enumerate(terms):
+            if not t.options:
+                continue
+            others = terms[:i] + terms[i + 1:]
+            key = (tuple((o.name, repr(o.design)) for o in others), t.name, int(fit_mask[0]), int(fit_mask.sum()))
+            if key not in self._design_cache:
+                base = fit_model(self.frame, self.base.fit.state, others, valid, self.base.sigma, fit_mask=fit_mask,
+                                 iters=2)
+                rss = [quick_rss(self.frame, base, t.with_design(dz, G)) for dz, G in t.options]
+                self._design_cache[key] = int(np.argmin(rss))
+            dz, G = t.options[self._design_cache[key]]
+            terms[i] = t.with_design(dz, G)
+        return terms
+
+    def _replica_stats(self, cand, fits, folds, e, valid, bursts, R):
+        frame, base, d = self.frame, self.base, self.design
+        r_norm, raw = self._norm(cand, R, bursts)
+        r = np.empty((R, frame.n, d.C))
+        r[:, :, 0] = r_norm
+        rep_valid = np.repeat(base.valid[None], R, axis=0)
+        for k in range(R):
+            rep_valid[k] &= self._mask(cand, raw[k])[:, None]
+        if d.C == 2:
+            r[:, :, 1] = dip_replicas(e[:, 1], valid[:, 1], R, self.seed)
+        if len(folds) == 1:
+            rep_e = project(r, rep_valid, fits[0].X, folds[0], base.sigma, valid)
+        else:
+            rep_e = np.empty_like(r)
+            for f, ft in zip(folds, fits):
+                pe = project(r, rep_valid, ft.X, f, base.sigma, valid)
+                rep_e[:, ~f] = pe[:, ~f]
+        clocks = self._clock(cand, R)
+        rep_bs = [panel.block_stats(d, rep_e[k], rep_valid[k], raw[k], clocks[k] if frame.timestamps_real else None)
+                  for k in range(R)]
+        return rep_bs, rep_e, rep_valid
+
+    def _score(self, cand, fit, valid, real_bs, rep_bs, rep_e, rep_valid, mult, ref=None):
+        d = self.design
+        pr = panel.evaluate(d, real_bs, mult)
+        x, w, fl = pr.arrays()
+        if self.labels is None:
+            self.labels = list(zip(pr.family, pr.labels))
+            self.gi = gap.GapIndex(pr.family, [c for c, _ in pr.labels])
+        reps = np.array([panel.evaluate(d, bs, mult).arrays()[0] for bs in rep_bs])
+        ev = Evaluation(cand, fit, valid, real_bs, rep_bs, rep_e, rep_valid, mult, x, reps, w, fl,
+                        gap.zscores(x, reps, fl), float("nan"), ref)
+        ev.G = self.gap_of(ev)
+        return ev
+
+    def calibrate(self, ev: Evaluation) -> np.ndarray:
+        """Normalise the gap index on ev's replicas (leave-one-out) so that it is about 1 when
+        the simulator matches; returns the null distribution of the index."""
+        null = self.gi.calibrate(ev.rep_values, ev.weights, ev.floors)
+        ev.G = self.gap_of(ev)
+        return null
+
+    def boot_gaps(self, ev: Evaluation, mults):
+        """Gap index of ev for each block weighting in mults (M, B): the real recording and every
+        replica are re-aggregated over the same resampled blocks (a consistent bootstrap)."""
+        d = self.design
+        x, w, fl = panel.evaluate(d, ev.real_bs, mults, kernel=False).matrices()
+        reps = np.stack([panel.evaluate(d, bs, mults, kernel=False).matrices()[0] for bs in ev.rep_bs])
+        pen = self._penalty(ev, ev.rep_values)
+        out = np.empty(mults.shape[0])
+        for m in range(mults.shape[0]):
+            out[m] = self.gi.index(gap.zscores(x[m], reps[:, m], fl[m]), w[m], pen)
+        return out
+
+    def _penalty(self, ev, reps):
+        """What a stochastic effect pays for closing the gap by widening its replicas: the log of
+        each statistic's replica variance over that of the same model without it (>= 0), i.e.
+        the Dawid-Sebastiani score's log term."""
+        if ev.ref_values is None:
+            return None
+        ref = ev.ref_values[: reps.shape[0]]
+        return np.maximum(0.0, 2.0 * (np.log(gap.spread(reps, ev.floors)) - np.log(gap.spread(ref, ev.floors))))
+
+    def gap_of(self, ev: Evaluation, R=None) -> float:
+        """ev's gap index (with only its first R replicas: the screening size)."""
+        reps = ev.rep_values if R is None else ev.rep_values[:R]
+        z = gap.zscores(ev.real_values, reps, ev.floors)
+        return self.gi.index(z, ev.weights, self._penalty(ev, reps))
+
+    # -- adding one effect --------------------------------------------------------------------
+    def extend(self, ev: Evaluation, name: str):
+        """The candidate ev.cand + effect ``name`` (its design chosen / parameters estimated on
+        the training blocks), or None when the data give no estimate (nothing to add)."""
+        form = FORMS[name]
+        if isinstance(form, MeanForm):
+            designs = form.designs(self.env)
+            if not designs:
+                return None
+            options = [(dz, form.G(self.env, dz)) for dz in designs] if len(designs) > 1 else None
+            return ev.cand.plus_term(Term(name, designs[0], form.G(self.env, designs[0]), form.k, options))
+        params = form.estimate(self.env, ev, self.all_mult)
+        if params is None:
+            return None
+        return ev.cand.plus_estimated(name, params)

@@ -1,0 +1,624 @@
+"""How the diagnoser fits each effect of the library: its fitting form.
+
+Mean effects (a deterministic change of the raw signal) are linear in their parameters once
+the nonlinear settings are fixed: dm = G(t) theta. G comes from the forward model's
+derivative with respect to its parameters (e.g. temperature_offset: I_3 (T_lag(t) - mean);
+temperature_scale: diag(m - b) (T_lag - mean); hard_iron_step: I_3 [t >= t0]); settings that
+are not linear (thermal lag tau, step time t0, hysteresis rate) are found by a grid search on
+training blocks. Each design returns its G as a function of (frame, m, state) so that the
+Gauss-Newton fit can re-evaluate it at the current hard iron.
+
+Stochastic and clock effects are estimated from the data (autocovariance excess over the
+replicas for coloured noise, block-to-block hard-iron wander for a random walk, the lattice of
+raw values, pile-ups at the extremes, the statistics of time steps) and then *added to the
+replicas*, which is how a simulator would carry them.
+
+cross_axis is observed only through its antisymmetric part, a rotation against the
+accelerometer: its form is the misalignment's, and the two are always reported as ambiguous.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..sim.effects import EFFECTS
+from ..sim.effects.base import first_order_lag
+from ..sim.trajectory import moving_average
+
+UNIT_TO_UT = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "T": 1e6, "G": 100.0, "gauss": 100.0, "Gauss": 100.0, "mG": 0.1}
+F_REF_UT = 50.0
+
+
+@dataclass
+class Env:
+    frame: object
+    base: object
+    cache: dict = field(default_factory=dict)
+
+    @property
+    def to_uT(self):
+        return UNIT_TO_UT.get(self.frame.unit)
+
+    @property
+    def F_ref(self) -> float:
+        """50 uT in the recording's unit, or the fitted field when the unit is unknown."""
+        f = self.to_uT
+        return F_REF_UT / f if f else float(self.base.fit.state.F)
+
+    def lagged(self, name, tau):
+        key = ("lag", name, tau)
+        if key not in self.cache:
+            x = first_order_lag(self.frame.t, self.frame.aux[name], tau)
+            self.cache[key] = x - x.mean()
+        return self.cache[key]
+
+    def mdot(self):
+        if "mdot" not in self.cache:
+            ms = moving_average(self.frame.m, 3)
+            self.cache["mdot"] = np.gradient(ms, self.frame.t, axis=0)
+        return self.cache["mdot"]
+
+    def field_unit(self, x, nano=False):
+        """(value, unit label) of a field-like quantity in the recording's unit."""
+        f = self.to_uT
+        if f is None:
+            return float(x), self.frame.unit
+        return float(x) * f * (1e3 if nano else 1.0), ("nT" if nano else "uT")
+
+
+def _diag(x):
+    """(N, 3, 3) with x (N,) or (N, 3) on the diagonal."""
+    x = np.asarray(x)
+    out = np.zeros((x.shape[0], 3, 3))
+    for j in range(3):
+        out[:, j, j] = x if x.ndim == 1 else x[:, j]
+    return out
+
+
+@dataclass
+class MeanForm:
+    name: str
+    designs: Callable          # (env) -> list of design dicts
+    G: Callable                # (env, design) -> callable(frame, m, state) -> (N, 3, k)
+    k: int
+    magnitude: Callable        # (env, design, theta) -> {"value": v, "unit": u, ...}
+    kind: str = "mean"
+    alias_of: str | None = None
+
+
+@dataclass
+class EstimatedForm:
+    name: str
+    kind: str                  # "noise", "clock" or "mask"
+    estimate: Callable         # (env, ctx, mult) -> params dict or None
+    replica: Callable          # (env, params) -> list of (effect object, params) for the simulator
+    magnitude: Callable        # (env, params) -> dict
+    mask: Callable | None = None   # (env, params, raw (N, 3)) -> (N,) usable samples
+    alias_of: str | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# mean effects
+# ---------------------------------------------------------------------------------------------
+
+def _vec_mag(env, theta, scale, unit_nano, per):
+    v = np.asarray(theta) * scale
+    val, unit = env.field_unit(np.linalg.norm(v), nano=unit_nano)
+    comp = [env.field_unit(x, nano=unit_nano)[0] for x in v]
+    return {"value": val, "unit": unit + per, "vector": comp}
+
+
+def _tau_grid(env):
+    """Thermal lags tried (s): doubling steps, up to the length of the recording."""
+    return [tau for tau in (0.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0) if tau <= env.frame.duration]
+
+
+def _tau_pairs(env):
+    """The die temperature as the temp column through two first-order thermal stages (board,
+    then die; tau_a <= tau_b, 0 = no stage). The library's forward model has one stage; the
+    second lets one form follow a die that sits further from the temperature sensor."""
+    g = _tau_grid(env)
+    return [{"tau": a, "tau2": b} for i, a in enumerate(g) for b in g[i:] if b > 0 or a == 0]
+
+
+def _die(env, d):
+    key = ("die", d["tau"], d["tau2"])
+    if key not in env.cache:
+        x = first_order_lag(env.frame.t, first_order_lag(env.frame.t, env.frame.aux["temp"], d["tau"]), d["tau2"])
+        env.cache[key] = x - x.mean()
+    return env.cache[key]
+
+
+def _temp_offset():
+    def G(env, d):
+        x = _die(env, d)
+        return lambda frame, m, st: _diag(x)
+
+    def mag(env, d, th):
+        out = _vec_mag(env, th, 1.0, True, "/degC")
+        out.update(tau_s=[d["tau"], d["tau2"]], meaning="offset per degC of die temperature (two lag stages)")
+        return out
+    return MeanForm("temperature_offset", _tau_pairs, G, 3, mag)
+
+
+def _temp_scale():
+    def G(env, d):
+        x = _die(env, d)
+        return lambda frame, m, st: _diag((m - st.b) * x[:, None])
+
+    def mag(env, d, th):
+        a = np.asarray(th) * 100.0
+        return {"value": float(np.linalg.norm(a)), "unit": "%/degC", "vector": a.tolist(),
+                "tau_s": [d["tau"], d["tau2"]]}
+    return MeanForm("temperature_scale", _tau_pairs, G, 3, mag)
+
+
+def _current():
+    def G(env, d):
+        x = env.frame.aux["current"] - env.frame.aux["current"].mean()
+        return lambda frame, m, st: _diag(x)
+    return MeanForm("current_hard_iron", lambda env: [{}], G, 3, lambda env, d, th: _vec_mag(env, th, 1.0, False, "/A"))
+
+
+def _throttle():
+    def G(env, d):
+        x = env.frame.aux["throttle"]
+        a, b = x - x.mean(), x * x - (x * x).mean()
+        return lambda frame, m, st: np.concatenate([_diag(a), _diag(b)], axis=2)
+
+    def mag(env, d, th):
+        out = _vec_mag(env, np.asarray(th[:3]) + np.asarray(th[3:]), 1.0, False, "")
+        out["meaning"] = "offset at full throttle against zero throttle"
+        return out
+    return MeanForm("throttle_hard_iron", lambda env: [{}], G, 6, mag)
+
+
+def _drift():
+    def G(env, d):
+        x = (env.frame.t - env.frame.t.mean()) / 3600.0
+        return lambda frame, m, st: _diag(x)
+    return MeanForm("hard_iron_drift", lambda env: [{}], G, 3, lambda env, d, th: _vec_mag(env, th, 1.0, False, "/h"))
+
+
+def _step():
+    def designs(env):
+        t = env.frame.t
+        qs = np.linspace(0.03, 0.97, 63)
+        return [{"t_step": float(x)} for x in np.quantile(t, qs)]
+
+    def G(env, d):
+        x = (env.frame.t >= d["t_step"]).astype(float)
+        x -= x.mean()
+        return lambda frame, m, st: _diag(x)
+
+    def mag(env, d, th):
+        out = _vec_mag(env, th, 1.0, False, "")
+        out["t_step_s"] = d["t_step"] - float(env.frame.t[0])
+        return out
+    return MeanForm("hard_iron_step", designs, G, 3, mag)
+
+
+def _nonlin():
+    def G(env, d):
+        return lambda frame, m, st: _diag(((m - st.b) / env.F_ref) ** 3)
+
+    def mag(env, d, th):
+        out = _vec_mag(env, th, 1.0, True, "")
+        out["meaning"] = "departure at 50 uT per axis" if env.to_uT else "departure at the fitted field"
+        return out
+    return MeanForm("scale_nonlinearity", lambda env: [{}], G, 3, mag)
+
+
+def _quad_basis(v):
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    return np.stack([np.sqrt(15) * x * y, np.sqrt(15) * x * z, np.sqrt(15) * y * z,
+                     np.sqrt(15 / 4) * (x * x - y * y), np.sqrt(5 / 4) * (x * x + y * y - 2 * z * z)], axis=1)
+
+
+def norm_pattern_rms(dm_of_u) -> float:
+    """RMS over directions of u . dm(u) after removing what a hard iron absorbs (degree 0 and 1):
+    the observable size of a direction-dependent raw error (a quadratic raw error has null
+    directions the norm cannot see, so its raw-frame size is not identifiable)."""
+    from ..sim.effects.nonlinear import fibonacci_sphere
+
+    u = fibonacci_sphere(2000)
+    r = np.sum(u * dm_of_u(u), axis=1)
+    A = np.column_stack([np.ones(len(u)), u])
+    r = r - A @ np.linalg.lstsq(A, r, rcond=None)[0]
+    return float(np.sqrt(np.mean(r * r)))
+
+
+def _higher_order():
+    def G(env, d):
+        def g(frame, m, st):
+            mc = (m - st.b) @ st.S.T
+            Y = _quad_basis(mc / np.linalg.norm(mc, axis=1, keepdims=True))
+            out = np.zeros((m.shape[0], 3, 15))
+            for j in range(3):
+                out[:, j, 5 * j:5 * j + 5] = Y
+            return out
+        return g
+
+    def mag(env, d, th):
+        F = float(env.base.fit.state.F)
+        val, unit = env.field_unit(norm_pattern_rms(lambda u: np.stack([_quad_basis(u) @ np.asarray(th)[5 * j:5 * j + 5]
+                                                                        for j in range(3)], axis=1))
+                                   * (env.F_ref / F) ** 2)
+        return {"value": val, "unit": unit,
+                "meaning": ("RMS over directions of the field-strength error no ellipsoid can fit, at 50 uT"
+                            if env.to_uT else "RMS over directions of the field-strength error no ellipsoid can fit")}
+    return MeanForm("higher_order_soft_iron", lambda env: [{}], G, 15, mag)
+
+
+def _hysteresis():
+    def designs(env):
+        return [{"k": k} for k in (0.3, 1.0, 3.0)]
+
+    def G(env, d):
+        md = env.mdot()
+        eps = d["k"] * np.maximum(np.median(np.abs(md), axis=0), 1e-12)
+        x = -np.tanh(md / eps)
+        return lambda frame, m, st: _diag(x)
+
+    def mag(env, d, th):
+        val, unit = env.field_unit(float(np.sqrt(np.mean(np.square(th)))))
+        return {"value": val, "unit": unit, "vector": [env.field_unit(x)[0] for x in th], "meaning": "loop half-width"}
+    return MeanForm("hysteresis", designs, G, 3, mag)
+
+
+def _rotation_G(env, d):
+    def g(frame, m, st):
+        mc = (m - st.b) @ st.S.T
+        Sinv = np.linalg.inv(st.S)
+        out = np.zeros((m.shape[0], 3, 3))
+        for k in range(3):
+            ek = np.zeros(3)
+            ek[k] = 1.0
+            out[:, :, k] = np.cross(ek, mc) @ Sinv.T
+        return out
+    return g
+
+
+def _rotation_mag(env, d, th):
+    a = np.degrees(np.asarray(th))
+    return {"value": float(np.linalg.norm(a)), "unit": "deg", "vector": a.tolist(),
+            "meaning": "rotation of the magnetometer against the accelerometer"}
+
+
+def _latency():
+    def G(env, d):
+        md = env.mdot() * 1e-3
+
+        def g(frame, m, st):
+            # a delay turns the field, it never changes its strength: keep the part of dm/dt that
+            # is tangent to the ellipsoid (so the norm channel is untouched, as in the forward model)
+            mc = (m - st.b) @ st.S.T
+            v = mc / np.linalg.norm(mc, axis=1, keepdims=True)
+            radial = np.sum(v * (md @ st.S.T), axis=1)
+            tan = md - radial[:, None] * (v @ np.linalg.inv(st.S).T)
+            return -tan[:, :, None]
+        return g
+
+    def mag(env, d, th):
+        return {"value": float(th[0]), "unit": "ms", "meaning": "magnetometer later than the accelerometer"}
+    return MeanForm("latency", lambda env: [{}], G, 1, mag)
+
+
+# ---------------------------------------------------------------------------------------------
+# estimated (stochastic, clock, mask) effects
+# ---------------------------------------------------------------------------------------------
+
+class _Custom:
+    """A replica-side forward model (per-axis generalisations of the library's forms)."""
+
+    def __init__(self, name, stage, fn):
+        self.name, self.stage, self.fn = name, stage, fn
+
+    def apply(self, ctx, params):
+        self.fn(ctx)
+
+
+def _acov(z, inl, slices, K):
+    """Sum of lag products and pair counts at lags 0..K over the given blocks (FFT per block)."""
+    s = np.zeros(K + 1)
+    c = np.zeros(K + 1)
+    for sl in slices:
+        x = np.where(inl[sl], z[sl], 0.0)
+        msk = inl[sl].astype(float)
+        if msk.sum() < 10:
+            continue
+        x = np.where(inl[sl], x - x.sum() / msk.sum(), 0.0)
+        L = x.size
+        nf = 1 << int(np.ceil(np.log2(2 * L)))
+        fx = np.fft.rfft(x, nf)
+        fm = np.fft.rfft(msk, nf)
+        kk = min(K, L - 1)
+        s[:kk + 1] += np.fft.irfft(fx * np.conj(fx), nf)[:kk + 1]
+        c[:kk + 1] += np.fft.irfft(fm * np.conj(fm), nf)[:kk + 1]
+    return s, np.round(c)
+
+
+def _colored_estimate(env, ctx, mult):
+    """Two Gauss-Markov components: a fast one from the residual's autocovariance within blocks
+    (its excess over the replicas'), and a slow one (correlation time of minutes, which looks
+    like a random walk inside a block) from how the blocks' apparent hard iron differs with
+    their distance apart."""
+    slow = _colored_slow(env, ctx, mult)
+    fast = _colored_fast(env, ctx, mult, slow)
+    if fast is None and slow is None:
+        return None
+    out = {"sigma": 0.0, "tau": 1.0, "sigma2": 0.0, "tau2": 1.0}
+    if fast is not None:
+        out.update(sigma=fast[0], tau=fast[1])
+    if slow is not None:
+        out.update(sigma2=slow[0], tau2=slow[1])
+    return out
+
+
+def _projection_acov(env, K):
+    """mean over t of (S^T v_t).(S^T v_{t+k}), k = 1..K: how much of a raw-frame noise the norm
+    channel keeps over a lag while the sensor turns (1 at k = 0 for S = I)."""
+    key = ("pacov", K)
+    if key not in env.cache:
+        JS = env.base.fit.v @ env.base.fit.state.S
+        n = JS.shape[0]
+        env.cache[key] = np.array([np.mean(np.sum(JS[:n - k] * JS[k:], axis=1)) for k in range(1, K + 1)])
+    return env.cache[key]
+
+
+def _colored_fast(env, ctx, mult, slow=None):
+    frame, base = env.frame, env.base
+    slices = [sl for sl, w in zip(frame.block_slices(), mult) if w > 0]
+    Lb = min(sl.stop - sl.start for sl in slices)
+    K = int(max(4, min(200, Lb // 3)))
+    sig = base.sigma[0]
+    s, c = _acov(ctx.e[:, 0] / sig, ctx.inlier[:, 0], slices, K)
+    real = s[1:] / np.maximum(c[1:], 1)
+    reps = []
+    for i in range(ctx.rep_e.shape[0]):
+        inl = ctx.rep_valid[i, :, 0] & (np.abs(ctx.rep_e[i, :, 0]) < 4 * sig)
+        sr, cr = _acov(ctx.rep_e[i, :, 0] / sig, inl, slices, K)
+        reps.append(sr[1:] / np.maximum(cr[1:], 1))
+    reps = np.array(reps)
+    ex = real - reps.mean(axis=0)
+    pc = np.maximum(_projection_acov(env, K), 1e-3)
+    lags = np.arange(1, K + 1) * frame.dt0
+    if slow is not None:                 # what the slow component puts into the norm channel
+        s2, tau2 = slow
+        ex = ex - (s2 / sig) ** 2 * pc * np.exp(-lags / tau2)
+    sd1 = reps[:, 0].std(ddof=1) if reps.shape[0] > 2 else 1.0 / np.sqrt(c[1])
+    if not ex[0] > 3 * sd1:
+        return None
+    y = ex / pc                          # the raw-frame autocovariance the norm channel saw
+    stop = np.flatnonzero(y <= 0)
+    n_pos = int(stop[0]) if stop.size else y.size
+    if n_pos >= 2:
+        k = np.arange(1, n_pos + 1)
+        w = y[:n_pos]
+        A = np.stack([np.ones(n_pos), k], axis=1) * w[:, None]
+        coef = np.linalg.lstsq(A, np.log(y[:n_pos]) * w, rcond=None)[0]
+        amp, phi = float(np.exp(coef[0])), float(np.exp(coef[1]))
+    else:
+        amp, phi = float(y[0]), 0.5
+    phi = min(max(phi, 1e-3), 1 - 1e-4)
+    return float(np.sqrt(max(amp, 0.0))) * sig, float(min(-frame.dt0 / np.log(phi), frame.duration / 4))
+
+
+def _variogram(env, bs, mult, kmax):
+    o = block_offsets(env, bs)
+    used = np.flatnonzero(mult > 0)
+    g = np.full(kmax, np.nan)
+    for k in range(1, kmax + 1):
+        d = [np.sum((o[b + k] - o[b]) ** 2) for b in used if b + k < len(o) and mult[b + k] > 0
+             and np.isfinite(o[b]).all() and np.isfinite(o[b + k]).all()]
+        if d:
+            g[k - 1] = np.mean(d)
+    return g
+
+
+def _colored_slow(env, ctx, mult, kmax=8):
+    g = _variogram(env, ctx.real_bs, mult, kmax)
+    gr = np.array([_variogram(env, bs, mult, kmax) for bs in ctx.rep_bs])
+    if gr.shape[0] < 3 or not np.isfinite(gr).all() or not np.isfinite(g).all():
+        return None
+    ex = g - gr.mean(axis=0)
+    sd = gr.std(axis=0, ddof=1)
+    if not ex[-1] > 3 * sd[-1]:
+        return None
+    L = env.frame.duration / env.frame.n_blocks
+    k = np.arange(1, kmax + 1)
+    best = None
+    for tau in L * np.geomspace(0.5, 64, 25):
+        x = 1.0 - np.exp(-k * L / tau)
+        A = float(x @ ex / (x @ x))
+        r = float(np.sum((ex - A * x) ** 2))
+        if A > 0 and (best is None or r < best[0]):
+            best = (r, A, tau)
+    if best is None:
+        return None
+    _, A, tau = best
+    u = L / tau
+    f = 2.0 * (np.exp(-u) - 1.0 + u) / (u * u)      # variance of a block mean of the process, per sigma^2
+    return float(np.sqrt(A / (6.0 * f))), float(tau)
+
+
+def _colored():
+    def replica(env, p):
+        out = []
+        for s_, t_ in ((p["sigma"], p["tau"]), (p["sigma2"], p["tau2"])):
+            if s_ > 0:
+                out.append((EFFECTS["colored_noise"], {"sigma": s_, "tau": t_}))
+        return out
+
+    def mag(env, p):
+        val, unit = env.field_unit(float(np.hypot(p["sigma"], p["sigma2"])))
+        return {"value": val, "unit": unit, "components": [[p["sigma"], p["tau"]], [p["sigma2"], p["tau2"]]],
+                "meaning": "standard deviation per axis (fast and slow Gauss-Markov components: [sigma, tau s])"}
+    return EstimatedForm("colored_noise", "noise", _colored_estimate, replica, mag)
+
+
+def block_offsets(env, bs):
+    """Apparent hard-iron offset (raw unit) of each block from the time-family regression."""
+    from .panel import _solve6
+
+    coef = _solve6(bs["tXX"][0], bs["tXe"][0])[:, 1:4] * env.base.sigma[0]
+    return coef @ np.linalg.inv(env.base.fit.state.S).T
+
+
+def _walk_stat(env, bs, mult):
+    o = block_offsets(env, bs)
+    tr = np.flatnonzero(mult > 0)
+    pairs = [(a, b) for a, b in zip(tr[:-1], tr[1:]) if np.isfinite(o[a]).all() and np.isfinite(o[b]).all()]
+    if not pairs:
+        return np.nan, 0
+    d = np.array([np.sum((o[b] - o[a]) ** 2) for a, b in pairs])
+    gaps = np.array([b - a for a, b in pairs])
+    return float(np.mean(d)), float(np.mean(gaps))
+
+
+def _walk_estimate(env, ctx, mult):
+    D, gap = _walk_stat(env, ctx.real_bs, mult)
+    Dr = np.array([_walk_stat(env, bs, mult)[0] for bs in ctx.rep_bs])
+    Dr = Dr[np.isfinite(Dr)]
+    if not np.isfinite(D) or Dr.size < 3:
+        return None
+    ex = D - Dr.mean()
+    if not ex > 3 * Dr.std(ddof=1):
+        return None
+    L = env.frame.duration / env.frame.n_blocks
+    q2 = ex / (3.0 * (gap - 1.0 / 3.0) * L)           # per axis, unit^2/s (block means gap*L apart)
+    return {"q": float(np.sqrt(q2) * 60.0)}           # unit/sqrt(h)
+
+
+def _walk():
+    def replica(env, p):
+        return [(EFFECTS["bias_random_walk"], {"q": p["q"]})]
+
+    def mag(env, p):
+        val, unit = env.field_unit(p["q"])
+        return {"value": val, "unit": unit + "/sqrt(h)"}
+    return EstimatedForm("bias_random_walk", "noise", _walk_estimate, replica, mag)
+
+
+def _quant_estimate(env, ctx, mult):
+    lat = env.base.lattice
+    if not np.nanmax(lat["strength"]) > 0.5:
+        return None
+    return {"q": lat["q"].tolist(), "phase": lat["phase"].tolist(), "lsb": float(np.nanmedian(lat["q"]))}
+
+
+def _quant():
+    def replica(env, p):
+        q, ph = np.asarray(p["q"]), np.asarray(p["phase"])
+
+        def fn(ctx):
+            ok = np.isfinite(q) & (q > 0)
+            ctx.m[:, ok] = np.round((ctx.m[:, ok] - ph[ok]) / q[ok]) * q[ok] + ph[ok]
+        return [(_Custom("quantization", "range", fn), {})]
+
+    def mag(env, p):
+        val, unit = env.field_unit(p["lsb"])
+        return {"value": val, "unit": unit, "meaning": "least significant bit"}
+    return EstimatedForm("quantization", "noise", _quant_estimate, replica, mag)
+
+
+def _sat_tol(env):
+    q = np.nan_to_num(env.base.lattice["q"], nan=0.0) * (env.base.lattice["strength"] > 0.5)
+    return np.maximum(0.5 * env.base.sigma_axis, 0.51 * q)
+
+
+def _sat_estimate(env, ctx, mult):
+    m = env.frame.m[np.isin(env.frame.block, np.flatnonzero(mult > 0))]
+    tol = _sat_tol(env)
+    levels = []
+    for j in range(3):
+        for sign in (1.0, -1.0):
+            x = sign * m[:, j]
+            top = x.max()
+            n_at = int(np.sum(x >= top - tol[j]))
+            n_band = int(np.sum((x < top - tol[j]) & (x >= top - 4 * tol[j])))
+            if n_at >= max(8, 0.002 * m.shape[0]) and n_at > 2 * n_band:
+                levels.append((j, sign, float(sign * top)))
+    if not levels:
+        return None
+    return {"levels": levels, "limit": float(np.median([abs(L) for _, _, L in levels]))}
+
+
+def _sat():
+    def replica(env, p):
+        def fn(ctx):
+            for j, sign, L in p["levels"]:
+                if sign > 0:
+                    np.minimum(ctx.m[:, j], L, out=ctx.m[:, j])
+                else:
+                    np.maximum(ctx.m[:, j], L, out=ctx.m[:, j])
+        return [(_Custom("saturation", "range", fn), {})]
+
+    def mask(env, p, raw):
+        tol = _sat_tol(env)
+        ok = np.ones(raw.shape[0], dtype=bool)
+        for j, sign, L in p["levels"]:
+            ok &= ~(np.abs(raw[:, j] - L) <= tol[j])
+        return ok
+
+    def mag(env, p):
+        val, unit = env.field_unit(p["limit"])
+        return {"value": val, "unit": unit, "levels": [[j, s, env.field_unit(L)[0]] for j, s, L in p["levels"]]}
+    return EstimatedForm("saturation", "mask", _sat_estimate, replica, mag, mask=mask)
+
+
+def _clock_sums(bs, mult):
+    return bs["clock"] @ mult
+
+
+def _jitter_estimate(env, ctx, mult):
+    """RMS from the variance of the time steps above the replicas' (a step is the difference of
+    two independent errors: twice their variance); the shape from the steps' excess kurtosis
+    (half that of the errors)."""
+    ck = _clock_sums(ctx.real_bs, mult)
+    n = max(ck[0], 1)
+    v = ck[2] / n
+    vr = np.array([(lambda c: c[2] / max(c[0], 1))(_clock_sums(bs, mult)) for bs in ctx.rep_bs])
+    ex = v - vr.mean()
+    se = max(vr.std(ddof=1) if vr.size > 2 else 0.0, v * np.sqrt(2.0 / n))
+    if not ex > 3 * se or not ex > 1e-8:
+        return None
+    mu = ck[7] / n
+    m2 = v - mu * mu
+    m4 = ck[6] / n - 4 * mu * (ck[2] / n) * mu + 6 * mu * mu * v - 3 * mu ** 4  # central 4th moment (approx.)
+    kd = m4 / max(m2 * m2, 1e-300) - 3.0
+    return {"sigma": float(np.sqrt(ex / 2.0) * env.frame.dt0 * 1e3), "kurtosis": float(np.clip(2.0 * kd, 0.0, 20.0))}
+
+
+def _drops_estimate(env, ctx, mult):
+    ck = _clock_sums(ctx.real_bs, mult)
+    lost, events = ck[3], ck[5]
+    if lost < 1:
+        return None
+    steps = ck[0] + ck[3] + ck[4]
+    return {"fraction": float(lost / max(steps + lost, 1)), "run": float(lost / max(events, 1))}
+
+
+def _jitter():
+    return EstimatedForm("timestamp_jitter", "clock", _jitter_estimate,
+                         lambda env, p: [(EFFECTS["timestamp_jitter"],
+                                          {"sigma": p["sigma"], "kurtosis": p["kurtosis"]})],
+                         lambda env, p: {"value": p["sigma"], "unit": "ms", "meaning": "RMS timestamp error"})
+
+
+def _drops():
+    return EstimatedForm("sample_drops", "clock", _drops_estimate,
+                         lambda env, p: [(EFFECTS["sample_drops"], {"fraction": p["fraction"], "run": p["run"]})],
+                         lambda env, p: {"value": p["fraction"], "unit": "fraction", "run": p["run"]})
+
+
+FORMS = {f.name: f for f in (
+    _temp_offset(), _temp_scale(), _current(), _throttle(), _drift(), _step(), _walk(), _nonlin(), _sat(),
+    MeanForm("cross_axis", lambda env: [{}], _rotation_G, 3, _rotation_mag, alias_of="misalignment"),
+    _higher_order(), _quant(), _colored(), _latency(), _jitter(), _drops(), _hysteresis(),
+    MeanForm("misalignment", lambda env: [{}], _rotation_G, 3, _rotation_mag),
+)}
+
+assert set(FORMS) == set(EFFECTS), set(FORMS) ^ set(EFFECTS)

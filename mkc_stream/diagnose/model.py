@@ -1,0 +1,280 @@
+"""Residual channels of a calibration and the joint (calibration + effects) Gauss-Newton fit.
+
+Channels (the observables a calibration leaves):
+
+* ``norm``: |S (m - b)| - F, in the recording's magnetometer unit. Its Jacobian with respect
+  to a perturbation dm of the raw sample is v^T S (v the calibrated direction).
+* ``dip`` (with an accelerometer): the angle between the calibrated field and the accelerometer
+  minus its fitted constant dip0, in rad; Jacobian -(g - (v.g) v)^T S / (|m_cal| sin(dip)).
+
+Every model is "baseline + mean effects": the baseline's 9 calibration parameters (b: 3, a
+symmetric perturbation of S: 6), dip0, and each effect's parameters, whose contribution to the
+raw signal is G(t) theta (G from :mod:`forms`). All of them enter the channels through the
+same Jacobian, so one weighted least-squares step fits them jointly; a few Gauss-Newton
+iterations (re-linearising at the new b, S, theta) remove the linearisation error of large
+effects. Weights are hard: a sample counts while |e| < 4 sigma of its channel (the same rule
+decides "down-weighted" in the statistics panel and in the replicas).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+INLIER_K = 4.0
+_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+@dataclass
+class State:
+    b: np.ndarray
+    S: np.ndarray
+    F: float
+    dip0: float = 0.0
+
+    def copy(self):
+        return State(self.b.copy(), self.S.copy(), float(self.F), float(self.dip0))
+
+
+@dataclass
+class Channels:
+    r: np.ndarray            # (N, C)
+    J: np.ndarray            # (N, C, 3)
+    mc: np.ndarray           # (N, 3) calibrated field
+    rho: np.ndarray          # (N,)
+    v: np.ndarray            # (N, 3) calibrated direction
+
+
+def n_channels(frame) -> int:
+    return 2 if frame.acc_unit is not None else 1
+
+
+def channels(m, frame, st: State) -> Channels:
+    mc = (m - st.b) @ st.S.T
+    rho = np.linalg.norm(mc, axis=1)
+    v = mc / rho[:, None]
+    C = n_channels(frame)
+    r = np.empty((m.shape[0], C))
+    J = np.empty((m.shape[0], C, 3))
+    r[:, 0] = rho - st.F
+    J[:, 0] = v @ st.S
+    if C == 2:
+        g = np.nan_to_num(frame.acc_unit)
+        c = np.clip(np.sum(v * g, axis=1), -1.0, 1.0)
+        th = np.arccos(c)
+        s = np.maximum(np.sqrt(1.0 - c * c), 1e-6)
+        r[:, 1] = th - st.dip0
+        J[:, 1] = -((g - c[:, None] * v) @ st.S) / (rho * s)[:, None]
+    return Channels(r, J, mc, rho, v)
+
+
+def calib_G(m, st: State) -> np.ndarray:
+    """(N, 3, 9) raw-domain perturbations of b (3) and of S (6 symmetric directions)."""
+    N = m.shape[0]
+    G = np.zeros((N, 3, 9))
+    G[:, 0, 0] = G[:, 1, 1] = G[:, 2, 2] = -1.0
+    Sinv = np.linalg.inv(st.S)
+    x = m - st.b
+    for i, (k, l) in enumerate(_SYM):
+        E = np.zeros((3, 3))
+        E[k, l] = E[l, k] = 1.0
+        G[:, :, 3 + i] = x @ (Sinv @ E).T
+    return G
+
+
+@dataclass
+class Term:
+    """One mean effect inside a model: its form, the chosen nonlinear settings and G(frame, m, state)."""
+
+    name: str
+    design: dict
+    G: object               # callable (frame, m, state) -> (N, 3, k)
+    k: int
+    options: list | None = None     # [(design, G)] when a nonlinear setting is chosen per fit (grid)
+
+    def with_design(self, design, G):
+        return Term(self.name, design, G, self.k, self.options)
+
+
+@dataclass
+class ModelFit:
+    state: State
+    terms: list
+    theta: list                 # per term (k,)
+    e: np.ndarray               # (N, C) residual
+    valid: np.ndarray           # (N, C)
+    inlier: np.ndarray          # (N, C)
+    X: np.ndarray               # (N, C, p) columns at the solution (calibration, dip0, effects)
+    sigma: np.ndarray           # (C,)
+    fit_mask: np.ndarray        # (N,)
+    v: np.ndarray               # (N, 3)
+    m_corr: np.ndarray          # (N, 3) raw minus the fitted effects
+    rss: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_calib(self) -> int:
+        return 9 + (1 if self.e.shape[1] == 2 else 0)
+
+    def term_slices(self):
+        out, start = [], self.n_calib
+        for t in self.terms:
+            out.append(slice(start, start + t.k))
+            start += t.k
+        return out
+
+
+def _effect_offsets(frame, st, terms, theta):
+    d = np.zeros_like(frame.m)
+    for term, th in zip(terms, theta):
+        d += np.einsum("nkp,p->nk", term.G(frame, frame.m, st), th)
+    return d
+
+
+def _columns(frame, m_corr, st, ch, terms):
+    cols = [np.einsum("nck,nkp->ncp", ch.J, calib_G(m_corr, st))]
+    C = ch.r.shape[1]
+    if C == 2:
+        d = np.zeros((m_corr.shape[0], 2, 1))
+        d[:, 1, 0] = -1.0
+        cols.append(d)
+    for term in terms:
+        # columns at the current linearisation point (the corrected signal), like the Jacobian
+        cols.append(-np.einsum("nck,nkp->ncp", ch.J, term.G(frame, m_corr, st)))
+    return np.concatenate(cols, axis=2)
+
+
+def _solve(A, g):
+    p = A.shape[0]
+    lam = 1e-10 * max(np.trace(A) / p, 1e-300)
+    try:
+        return -np.linalg.solve(A + lam * np.eye(p), g)
+    except np.linalg.LinAlgError:
+        return -np.linalg.lstsq(A + lam * np.eye(p), g, rcond=None)[0]
+
+
+def _normal(X, e, w, sigma):
+    """sum over samples and channels of w x x^T / s^2 and w x e / s^2."""
+    Xs = X / sigma[None, :, None]
+    es = e / sigma[None, :]
+    Xw = Xs * w[:, :, None]
+    A = np.einsum("ncp,ncq->pq", Xw, Xs)
+    g = np.einsum("ncp,nc->p", Xw, es)
+    return A, g
+
+
+def fit_model(frame, start: State, terms, valid, sigma, fit_mask=None, iters=4, inlier=None) -> ModelFit:
+    """Gauss-Newton fit of calibration + dip0 + the terms' parameters on ``fit_mask`` samples."""
+    fit_mask = np.ones(frame.n, dtype=bool) if fit_mask is None else fit_mask
+    st = start.copy()
+    theta = [np.zeros(t.k) for t in terms]
+    inl = valid.copy() if inlier is None else (inlier & valid)
+    for it in range(iters + 1):
+        m_corr = frame.m - _effect_offsets(frame, st, terms, theta)
+        ch = channels(m_corr, frame, st)
+        e = ch.r
+        if it > 0 or inlier is None:
+            inl = valid & (np.abs(e) < INLIER_K * sigma[None, :])
+        X = _columns(frame, m_corr, st, ch, terms)
+        if it == iters:
+            break
+        w = (inl & fit_mask[:, None]).astype(np.float64)
+        A, g = _normal(X, e, w, sigma)
+        d = _solve(A, g)
+        st.b = st.b + d[:3]
+        dS = np.zeros((3, 3))
+        for i, (k, l) in enumerate(_SYM):
+            dS[k, l] += d[3 + i]
+            if k != l:
+                dS[l, k] += d[3 + i]
+        st.S = st.S + dS
+        pos = 9
+        if e.shape[1] == 2:
+            st.dip0 += d[9]
+            pos = 10
+        for j, t in enumerate(terms):
+            theta[j] = theta[j] + d[pos:pos + t.k]
+            pos += t.k
+    w = inl & fit_mask[:, None]
+    rss = float(np.sum((e / sigma[None, :]) ** 2 * w))
+    return ModelFit(state=st, terms=list(terms), theta=theta, e=e, valid=valid, inlier=inl, X=X, sigma=sigma,
+                    fit_mask=fit_mask, v=ch.v, m_corr=m_corr, rss=rss)
+
+
+def quick_rss(frame, base: ModelFit, term: Term) -> float:
+    """Training RSS after one linear step from a fitted model with one more term (grid searches)."""
+    G = term.G(frame, base.m_corr, base.state)
+    J = channels(base.m_corr, frame, base.state).J
+    Xe = -np.einsum("nck,nkp->ncp", J, G)
+    X = np.concatenate([base.X, Xe], axis=2)
+    w = (base.inlier & base.fit_mask[:, None]).astype(np.float64)
+    A, g = _normal(X, base.e, w, base.sigma)
+    d = _solve(A, g)
+    e = base.e + np.einsum("ncp,p->nc", X, d)
+    return float(np.sum((e / base.sigma[None, :]) ** 2 * w))
+
+
+def block_normals(fit: ModelFit, block, n_blocks):
+    """Per-block normal equations (A_b, g_b) on the fit's own samples (for block bootstraps)."""
+    w = (fit.inlier & fit.fit_mask[:, None]).astype(np.float64)
+    Xs = fit.X / fit.sigma[None, :, None]
+    es = fit.e / fit.sigma[None, :]
+    p = Xs.shape[2]
+    A = np.zeros((n_blocks, p, p))
+    g = np.zeros((n_blocks, p))
+    for b in range(n_blocks):
+        sl = block == b
+        if sl.any():
+            Xw = Xs[sl] * w[sl][:, :, None]
+            A[b] = np.einsum("ncp,ncq->pq", Xw, Xs[sl])
+            g[b] = np.einsum("ncp,nc->p", Xw, es[sl])
+    return A, g
+
+
+def bootstrap_theta(fit: ModelFit, A_b, g_b, mult):
+    """Parameters after refitting with block multiplicities ``mult`` (one linear step)."""
+    A = np.tensordot(mult, A_b, axes=1)
+    g = np.tensordot(mult, g_b, axes=1)
+    d = _solve(A, g)
+    out, pos = [], fit.n_calib
+    for t, th in zip(fit.terms, fit.theta):
+        out.append(th + d[pos:pos + t.k])
+        pos += t.k
+    return out
+
+
+def project(r, valid, X, fit_mask, sigma, valid_common):
+    """Refit replicas of the residual channels (R, N, C) with the columns X of a model.
+
+    Each replica is generated at the model's own parameters, so one weighted least-squares step
+    is its fit. The normal matrix is shared: that of all common-valid fit samples, minus each
+    replica's own outliers and masked samples (a few percent), so R replicas cost about one fit.
+    """
+    R = r.shape[0]
+    inl = valid & (np.abs(r) < INLIER_K * sigma[None, None, :])
+    w = inl & fit_mask[None, :, None]
+    base = valid_common & fit_mask[:, None]
+    Xs = X / sigma[None, :, None]
+    A0, _ = _normal(X, np.zeros(X.shape[:2]), base.astype(np.float64), sigma)
+    rs = r / sigma[None, None, :]
+    g = np.einsum("rnc,ncp->rp", rs * w, Xs)
+    e = np.empty_like(r)
+    for i in range(R):
+        drop = base & ~w[i]
+        A = A0.copy()
+        if drop.any():
+            n_idx, c_idx = np.nonzero(drop)
+            Xd = Xs[n_idx, c_idx]
+            A -= Xd.T @ Xd
+        extra = w[i] & ~base
+        if extra.any():
+            n_idx, c_idx = np.nonzero(extra)
+            Xd = Xs[n_idx, c_idx]
+            A += Xd.T @ Xd
+        d = _solve(A, g[i])
+        e[i] = r[i] + np.einsum("ncp,p->nc", X, d)
+    return e
+
+
+def with_state(fit: ModelFit, **kw) -> ModelFit:
+    return replace(fit, **kw)

@@ -1,0 +1,502 @@
+"""The fixed panel of statistics on which real and simulated recordings are compared.
+
+Each statistic is built from per-block sufficient statistics (sums, counts, small normal
+matrices, periodogram band sums), so the same panel is evaluated on all blocks, on held-out
+blocks only, or on a bootstrap resample of blocks by a weighted sum, without touching the
+samples again. Families (``where`` in the JSON):
+
+* ``distribution`` per channel: mean, RMS over high-frequency noise, IQR, tails beyond 3 and 5
+  sigma, quantile skewness and kurtosis;
+* ``kernel``: the MKC E-step's (sigma, d) fitted to the norm residual (the paper's kernel);
+* ``sphere``: mean residual in 18 equal-area direction cells;
+* ``time``: per block, the residual regressed on [1, v, vx^2 - 1/3, vy^2 - 1/3] (v the calibrated
+  direction): the block's apparent offset, hard-iron change and soft-iron change;
+* ``changes``: how that apparent hard iron moves from block to block (largest jump over the
+  median one; von Neumann ratio): a step, a drift and a random walk differ here;
+* ``aux:NAME``: the same regression per quantile bin of each aux signal (and the turn rate);
+* ``frequency``: periodogram power in octave bands and the Allan variance at 1-32 samples;
+* ``weights``: where the fit down-weighted samples (overall, per block, per direction cell);
+* ``raw``: lattice strength of the raw values (quantization) and pile-up at the extremes (clipping);
+* ``timing``: timestamp jitter, lost and doubled samples.
+
+Residuals are scaled by a fixed sigma per channel (the real recording's), so every statistic
+is dimensionless.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+HIST_EDGES = np.arange(-8.0, 8.0 + 1e-9, 0.25)
+N_HIST = HIST_EDGES.size + 1            # + under/overflow
+N_AUX_BINS = 6
+BAND_FRACTIONS = np.array([1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0])   # of Nyquist
+TAUS = (1, 2, 4, 8, 16, 32)
+N_BANDS_Z, N_SECTORS = 3, 6
+REG_NAMES = ("mean", "v_x", "v_y", "v_z", "aniso_x", "aniso_y")
+_TRI = [(i, j) for i in range(6) for j in range(i, 6)]
+CHANNEL_NAMES = ("norm", "dip")
+
+
+def direction_cell(v: np.ndarray) -> np.ndarray:
+    """18 equal-area cells: 3 bands in z x 6 sectors in longitude."""
+    z = np.clip(v[:, 2], -1.0, 1.0)
+    band = np.minimum(((z + 1.0) * 0.5 * N_BANDS_Z).astype(np.int64), N_BANDS_Z - 1)
+    lon = np.arctan2(v[:, 1], v[:, 0]) + np.pi
+    sector = np.minimum((lon / (2 * np.pi) * N_SECTORS).astype(np.int64), N_SECTORS - 1)
+    return band * N_SECTORS + sector
+
+
+def cell_label(c: int) -> str:
+    band, sector = divmod(int(c), N_SECTORS)
+    lat = ("south", "equator", "north")[band]
+    return f"{lat} {sector * 60 - 180:+d}..{sector * 60 - 120:+d} deg"
+
+
+@dataclass
+class PanelDesign:
+    block: np.ndarray
+    n_blocks: int
+    slices: list
+    P: np.ndarray
+    PP: np.ndarray
+    cell: np.ndarray
+    aux_bins: dict                  # name -> (N,) bin (-1 = none)
+    aux_edges: dict                 # name -> bin edges (for labels)
+    aux_centres: dict               # name -> (bins,) median aux value per bin, centred, per unit span
+    sigma: np.ndarray               # (C,)
+    dt0: float
+    lattice_q: np.ndarray           # (3,)
+    lattice_phase: np.ndarray       # (3,)
+    pile_tol: np.ndarray            # (3,)
+    block_edges_t: np.ndarray       # (B + 1,) times
+    block_t0: np.ndarray            # (B,) start time of each block
+    n_cells: int = N_BANDS_Z * N_SECTORS
+    unit: str = "uT"
+    aux_units: dict = field(default_factory=dict)
+    rot: np.ndarray | None = None   # (N, 3) dip change per small rotation of the field against gravity (per sigma)
+
+    @property
+    def C(self) -> int:
+        return int(self.sigma.shape[0])
+
+
+def make_design(frame, v, sigma, extra_aux: dict, lattice_q, lattice_phase, pile_tol, rot=None) -> PanelDesign:
+    P = np.stack([np.ones(frame.n), v[:, 0], v[:, 1], v[:, 2], v[:, 0] ** 2 - 1 / 3, v[:, 1] ** 2 - 1 / 3], axis=1)
+    PP = np.stack([P[:, i] * P[:, j] for i, j in _TRI], axis=1)
+    bins, edges, centres = {}, {}, {}
+    for name, x in list(frame.aux.items()) + list(extra_aux.items()):
+        q = np.quantile(x, np.linspace(0, 1, N_AUX_BINS + 1))
+        q = np.unique(q)
+        if q.size < 3:
+            continue
+        bins[name] = np.clip(np.searchsorted(q, x, side="right") - 1, 0, q.size - 2)
+        edges[name] = q
+        med = np.array([np.median(x[bins[name] == k]) for k in range(q.size - 1)])
+        centres[name] = (med - med.mean()) / max(np.ptp(med), 1e-12)
+    T = frame.t
+    edges_t = T[0] + frame.duration * np.arange(frame.n_blocks + 1) / frame.n_blocks
+    return PanelDesign(block=frame.block, n_blocks=frame.n_blocks, slices=frame.block_slices(), P=P, PP=PP,
+                       cell=direction_cell(v), aux_bins=bins, aux_edges=edges, aux_centres=centres,
+                       sigma=np.asarray(sigma, float),
+                       dt0=frame.dt0, lattice_q=np.asarray(lattice_q, float),
+                       lattice_phase=np.asarray(lattice_phase, float), pile_tol=np.asarray(pile_tol, float),
+                       block_edges_t=edges_t, block_t0=edges_t[:-1], unit=frame.unit, rot=rot)
+
+
+def _bc(idx, w, size):
+    return np.bincount(idx, weights=w, minlength=size)
+
+
+def _indicator(idx, size):
+    from scipy.sparse import csr_matrix
+
+    ok = idx >= 0
+    n = idx.shape[0]
+    return csr_matrix((np.ones(int(ok.sum())), (idx[ok], np.flatnonzero(ok))), shape=(size, n))
+
+
+def indicators(d: PanelDesign):
+    """Sparse one-hot matrices (groups x samples) for blocks, block x cell, block x aux bin."""
+    if getattr(d, "_ind", None) is None:
+        B, K = d.n_blocks, d.n_cells
+        ind = {"block": _indicator(d.block, B), "cell": _indicator(d.block * K + d.cell, B * K)}
+        for name, bins in d.aux_bins.items():
+            ind["aux:" + name] = _indicator(np.where(bins >= 0, d.block * N_AUX_BINS + bins, -1), B * N_AUX_BINS)
+        d._ind = ind
+    return d._ind
+
+
+def block_stats(d: PanelDesign, e, valid, raw, clock_t=None) -> dict:
+    """Per-block sufficient statistics of one recording (real or replica)."""
+    B, C, K = d.n_blocks, d.C, d.n_cells
+    ind = indicators(d)
+    z = e / d.sigma[None, :]
+    inl = valid & (np.abs(z) < 4.0)
+    out = valid & ~inl
+    zi = np.where(inl, z, 0.0)
+    fi = inl.astype(float)
+    fv = valid.astype(float)
+    s = {}
+    hidx = np.clip(np.searchsorted(HIST_EDGES, z, side="right"), 0, N_HIST - 1)
+    s["hist"] = np.stack([_bc(d.block * N_HIST + hidx[:, c], fv[:, c], B * N_HIST)
+                          .reshape(B, N_HIST) for c in range(C)])
+    # one sparse product per grouping: columns [inl, z, z^2, valid, out, PP*inl (21), P*z (6)] per channel
+    cols = []
+    for c in range(C):
+        cols += [fi[:, c:c + 1], zi[:, c:c + 1], zi[:, c:c + 1] ** 2, fv[:, c:c + 1], out[:, c:c + 1].astype(float),
+                 d.PP * fi[:, c:c + 1], d.P * zi[:, c:c + 1]]
+    W = np.concatenate(cols, axis=1)                # (N, 32 C)
+    nc = 32
+    Wb = ind["block"] @ W                            # (B, 32 C)
+    Wk = (ind["cell"] @ W[:, : nc * C]).reshape(B, K, nc * C)
+    part = lambda A, c, a, b: A[..., c * nc + a: c * nc + b]  # noqa: E731
+    s["n"] = np.stack([part(Wb, c, 0, 1)[:, 0] for c in range(C)])
+    s["s1"] = np.stack([part(Wb, c, 1, 2)[:, 0] for c in range(C)])
+    s["s2"] = np.stack([part(Wb, c, 2, 3)[:, 0] for c in range(C)])
+    s["nvalid"] = np.stack([part(Wb, c, 3, 4)[:, 0] for c in range(C)])
+    s["out"] = np.stack([part(Wb, c, 4, 5)[:, 0] for c in range(C)])
+    s["tXX"] = np.stack([part(Wb, c, 5, 26) for c in range(C)])
+    s["tXe"] = np.stack([part(Wb, c, 26, 32) for c in range(C)])
+    s["cell_n"] = np.stack([part(Wk, c, 0, 1)[..., 0] for c in range(C)])
+    s["cell_s"] = np.stack([part(Wk, c, 1, 2)[..., 0] for c in range(C)])
+    s["cell_valid"] = part(Wk, 0, 3, 4)[..., 0]
+    s["cell_out"] = part(Wk, 0, 4, 5)[..., 0]
+    reg = np.concatenate([W[:, c * nc + 5: c * nc + 32] for c in range(C)], axis=1)   # (N, 27 C)
+    for name in d.aux_bins:
+        A = (ind["aux:" + name] @ reg).reshape(B, N_AUX_BINS, 27 * C)
+        s["aXX:" + name] = np.stack([A[..., c * 27: c * 27 + 21] for c in range(C)])
+        s["aXe:" + name] = np.stack([A[..., c * 27 + 21: c * 27 + 27] for c in range(C)])
+    if d.rot is not None and C == 2:
+        R3 = d.rot * fi[:, 1:2]
+        rr = np.concatenate([np.stack([d.rot[:, i] * R3[:, j] for i in range(3) for j in range(i, 3)], 1),
+                             d.rot * zi[:, 1:2]], axis=1)
+        Wr = ind["block"] @ rr
+        s["rXX"], s["rXe"] = Wr[:, :6], Wr[:, 6:]
+    _spectral(d, s, zi, inl)
+    _raw(d, s, raw)
+    _timing(d, s, clock_t)
+    s["e_norm"] = [z[sl, 0][valid[sl, 0]] for sl in d.slices]
+    return s
+
+
+def _spectral(d, s, zi, inl):
+    """Octave-band periodogram, Allan variance and third-difference noise, per block.
+
+    All blocks are cut to the shortest block's length so one FFT covers them all.
+    """
+    B, C = d.n_blocks, d.C
+    nb = BAND_FRACTIONS.size - 1
+    lens = np.array([sl.stop - sl.start for sl in d.slices])
+    L = int(lens[lens > 0].min()) if (lens > 0).any() else 0
+    spec = np.zeros((C, B, nb))
+    spec_n = np.zeros((C, B, nb))
+    av = np.zeros((C, B, len(TAUS)))
+    av_n = np.zeros((C, B, len(TAUS)))
+    # third differences within blocks
+    d3 = zi[3:] - 3 * zi[2:-1] + 3 * zi[1:-2] - zi[:-3]
+    good = inl[3:] & inl[2:-1] & inl[1:-2] & inl[:-3] & (d.block[3:] == d.block[:-3])[:, None]
+    hf = np.stack([_bc(d.block[3:], np.where(good[:, c], d3[:, c] ** 2, 0.0) / 20.0, B) for c in range(C)])
+    hf_n = np.stack([_bc(d.block[3:], good[:, c].astype(float), B) for c in range(C)])
+    if L >= 16:
+        ok_b = lens >= L
+        starts = np.array([sl.start for sl in d.slices])
+        idx = starts[:, None] + np.arange(L)[None, :]
+        idx[~ok_b] = 0
+        x = zi[idx]                               # (B, L, C)
+        m = inl[idx]
+        cnt = np.maximum(m.sum(axis=1, keepdims=True), 1)
+        x = np.where(m, x - x.sum(axis=1, keepdims=True) / cnt, 0.0)
+        x[~ok_b] = 0.0
+        P = np.abs(np.fft.rfft(x, axis=1)) ** 2 / L     # (B, F, C)
+        f = np.arange(P.shape[1]) / L * 2.0
+        band = np.searchsorted(BAND_FRACTIONS, f, side="right") - 1
+        for k in range(nb):
+            sel = (band == k) & (f > 0)
+            if sel.any():
+                spec[:, :, k] = P[:, sel, :].sum(axis=1).T
+                spec_n[:, :, k] = sel.sum() * ok_b
+        for i, tau in enumerate(TAUS):
+            k = L // tau
+            if k < 4:
+                continue
+            means = x[:, :k * tau].reshape(B, k, tau, C).mean(axis=2)
+            dm = np.diff(means, axis=1)
+            av[:, :, i] = (0.5 * np.sum(dm * dm, axis=1)).T * ok_b
+            av_n[:, :, i] = (k - 1) * ok_b
+    s.update(spec=spec, spec_n=spec_n, avar=av, avar_n=av_n, hf=hf, hf_n=hf_n)
+
+
+def _raw(d, s, raw):
+    B = d.n_blocks
+    ph = 2 * np.pi * (raw - d.lattice_phase) / d.lattice_q
+    s["lat_c"] = np.stack([_bc(d.block, np.cos(ph[:, j]), B) for j in range(3)])
+    s["lat_s"] = np.stack([_bc(d.block, np.sin(ph[:, j]), B) for j in range(3)])
+    s["raw_n"] = np.bincount(d.block, minlength=B).astype(float)
+    hi = raw >= raw.max(axis=0) - d.pile_tol
+    lo = raw <= raw.min(axis=0) + d.pile_tol
+    s["pile"] = np.stack([np.stack([_bc(d.block, hi[:, j].astype(float), B),
+                                    _bc(d.block, lo[:, j].astype(float), B)]) for j in range(3)])
+
+
+def _timing(d, s, t):
+    B = d.n_blocks
+    z = np.zeros((8, B))
+    if t is not None and len(t) > 2:
+        dt = np.diff(t) / d.dt0
+        blk = np.clip(np.searchsorted(d.block_edges_t, t[1:], side="right") - 1, 0, B - 1)
+        normal = (dt > 0.5) & (dt < 1.5)
+        z[0] = _bc(blk, normal.astype(float), B)
+        z[1] = _bc(blk, np.where(normal, np.abs(dt - 1.0), 0.0), B)
+        z[2] = _bc(blk, np.where(normal, (dt - 1.0) ** 2, 0.0), B)
+        z[3] = _bc(blk, np.where(dt >= 1.5, np.round(dt) - 1.0, 0.0), B)
+        z[4] = _bc(blk, (dt <= 0.5).astype(float), B)
+        z[5] = _bc(blk, (dt >= 1.5).astype(float), B)
+        z[6] = _bc(blk, np.where(normal, (dt - 1.0) ** 4, 0.0), B)
+        z[7] = _bc(blk, np.where(normal, dt - 1.0, 0.0), B)
+    s["clock"] = z
+
+
+# ---------------------------------------------------------------------------------------------
+# from block sums to the panel
+# ---------------------------------------------------------------------------------------------
+
+def _solve6(XX21, Xe):
+    """Coefficients of the 6-regressor fit from packed X^T X (..., 21) and X^T e (..., 6)."""
+    shape = XX21.shape[:-1]
+    A = np.zeros(shape + (6, 6))
+    for k, (i, j) in enumerate(_TRI):
+        A[..., i, j] = XX21[..., k]
+        A[..., j, i] = XX21[..., k]
+    n = A[..., 0, 0]
+    ridge = 1e-3 * np.maximum(n, 1e-12)
+    A = A + ridge[..., None, None] * np.eye(6)
+    coef = np.linalg.solve(A, Xe[..., None])[..., 0]
+    coef[n < 30] = np.nan
+    return coef
+
+
+def _quantiles(h, qs):
+    """Quantiles (in sigma) from histograms (..., N_HIST) over HIST_EDGES with under/overflow bins."""
+    c = np.cumsum(h, axis=-1)
+    tot = c[..., -1:]
+    out = []
+    for q in qs:
+        target = q * tot
+        k = np.clip(np.sum(c < target, axis=-1, keepdims=True), 0, N_HIST - 1)
+        prev = np.where(k > 0, np.take_along_axis(c, np.maximum(k - 1, 0), axis=-1), 0.0)
+        hk = np.maximum(np.take_along_axis(h, k, axis=-1), 1e-12)
+        lo = HIST_EDGES[np.clip(k - 1, 0, HIST_EDGES.size - 1)]
+        val = lo + 0.25 * (target - prev) / hk
+        val = np.where(k == 0, HIST_EDGES[0], np.where(k >= N_HIST - 1, HIST_EDGES[-1], val))
+        out.append(np.where(tot > 0, val, np.nan)[..., 0])
+    return out
+
+
+def _kernel(z):
+    from ..kernels.estep import estep_channel
+
+    if z.size < 50:
+        return np.nan, np.nan
+    a = 1.5 * float(np.max(np.abs(z)))
+    H = np.zeros(3)
+    sig, dd, _, _, _ = estep_channel(np.ascontiguousarray(z), z.size, a, 2.0, 1.0, 0.05, 1000.0, 1e-6 * a, a,
+                                     60, 1e-7, H)
+    return np.log(sig), np.log(dd)
+
+
+class Panel:
+    """Values (M, K), weights (M, K), floors (M, K), families and labels of a panel evaluated for
+    M block weightings at once (M = 1 for one weighting)."""
+
+    def __init__(self, M):
+        self.M = M
+        self._v, self._w, self._f = [], [], []
+        self.family, self.labels = [], []
+
+    def add(self, family, channel, labels, values, floors, weights=1.0):
+        M = self.M
+        values = np.asarray(values, dtype=np.float64).reshape(M, -1)
+        n = values.shape[1]
+        if isinstance(labels, str):
+            labels = [labels]
+        self._v.append(values)
+        self._f.append(self._shape(floors, M, n))
+        self._w.append(self._shape(weights, M, n))
+        self.family += [family] * n
+        self.labels += [(channel, lab) for lab in labels]
+
+    @staticmethod
+    def _shape(x, M, n):
+        """A scalar, a per-statistic (n,) row, or a full (M, n) array, as (M, n)."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim == 0 or x.shape == (n,):
+            return np.broadcast_to(x, (M, n))
+        return x.reshape(M, n)
+
+    def matrices(self):
+        return np.concatenate(self._v, 1), np.concatenate(self._w, 1), np.concatenate(self._f, 1)
+
+    def arrays(self):
+        v, w, f = self.matrices()
+        return v[0], w[0], f[0]
+
+
+def _binom_floor(p, n):
+    n = np.maximum(n, 1.0)
+    return np.sqrt(np.maximum(np.nan_to_num(p), 1.0 / n) / n)
+
+
+def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> Panel:
+    """The panel over blocks weighted by ``mult`` (B,) or (M, B) (1 = use once, 0 = leave out).
+    kernel=False leaves the (costlier) kernel statistics undefined (bootstraps)."""
+    mult = np.atleast_2d(np.asarray(mult, dtype=np.float64))
+    M = mult.shape[0]
+    p = Panel(M)
+    C = d.C
+    ch = CHANNEL_NAMES
+    aggc = lambda x: np.einsum("cb...,mb->mc...", x, mult)  # noqa: E731  (channel, block, ...) -> (M, C, ...)
+    agg = lambda x: np.einsum("b...,mb->m...", x, mult)     # noqa: E731
+    # distribution
+    H = aggc(s["hist"])                                     # (M, C, N_HIST)
+    n, s1, s2 = aggc(s["n"]), aggc(s["s1"]), aggc(s["s2"])
+    hf, hf_n = aggc(s["hf"]), aggc(s["hf_n"])
+    q = _quantiles(H, (0.025, 0.10, 0.25, 0.5, 0.75, 0.90, 0.975))
+    nall = np.maximum(H.sum(axis=-1), 1.0)
+    i3lo, i3hi = np.searchsorted(HIST_EDGES, -3.0) + 1, np.searchsorted(HIST_EDGES, 3.0) + 1
+    i5lo, i5hi = np.searchsorted(HIST_EDGES, -5.0) + 1, np.searchsorted(HIST_EDGES, 5.0) + 1
+    t3 = (H[..., :i3lo].sum(-1) + H[..., i3hi:].sum(-1)) / nall
+    t5 = (H[..., :i5lo].sum(-1) + H[..., i5hi:].sum(-1)) / nall
+    nn = np.maximum(n, 1.0)
+    var = np.maximum(s2 / nn - (s1 / nn) ** 2, 1e-12)
+    hfv = np.maximum(hf / np.maximum(hf_n, 1.0), 1e-12)
+    for c in range(C):
+        p.add("distribution", ch[c], "mean", s1[:, c] / nn[:, c], 1e-3)
+        p.add("distribution", ch[c], "rms / high-frequency noise", np.log(var[:, c] / hfv[:, c]) / 2, 1e-3)
+        p.add("distribution", ch[c], "IQR", (q[4][:, c] - q[2][:, c]) / 1.349, 1e-3)
+        p.add("distribution", ch[c], "beyond 3 sigma", t3[:, c], _binom_floor(t3[:, c], nall[:, c]))
+        p.add("distribution", ch[c], "beyond 5 sigma", t5[:, c], _binom_floor(t5[:, c], nall[:, c]))
+        p.add("distribution", ch[c], "skewness (quantile)",
+              (q[5][:, c] + q[1][:, c] - 2 * q[3][:, c]) / np.maximum(q[5][:, c] - q[1][:, c], 1e-9), 1e-3)
+        p.add("distribution", ch[c], "kurtosis (quantile)",
+              (q[6][:, c] - q[0][:, c]) / np.maximum(q[4][:, c] - q[2][:, c], 1e-9), 1e-3)
+    # kernel
+    ks = np.full((M, 2), np.nan)
+    for m in range(M if kernel else 0):
+        reps = np.round(mult[m]).astype(int)
+        zk = [np.tile(x, k) for x, k in zip(s["e_norm"], reps) if k > 0]
+        ks[m] = _kernel(np.concatenate(zk) if zk else np.zeros(0))
+    p.add("kernel", "norm", "log sigma", ks[:, 0], 0.02)
+    p.add("kernel", "norm", "log d", ks[:, 1], 0.02)
+    # sphere
+    cn, cs = aggc(s["cell_n"]), aggc(s["cell_s"])        # (M, C, K)
+    labels_cells = [cell_label(k) for k in range(d.n_cells)]
+    for c in range(C):
+        p.add("sphere", ch[c], labels_cells, np.where(cn[:, c] >= 20, cs[:, c] / np.maximum(cn[:, c], 1), np.nan), 1e-3)
+    # time: per block regression, weighted by multiplicity
+    coef = _solve6(s["tXX"], s["tXe"])          # (C, B, 6)
+    blab = [f"{d.block_t0[b]:.0f}-{d.block_edges_t[b + 1]:.0f} s" for b in range(d.n_blocks)]
+    tl = [f"{bl} {r}" for bl in blab for r in REG_NAMES]
+    wt = np.repeat(mult, 6, axis=1)
+    for c in range(C):
+        vals = np.where(wt > 0, coef[c].reshape(1, -1), np.nan)
+        p.add("time", ch[c], tl, vals, 1e-3, wt)
+    # changes: how the block-wise apparent hard iron moves (a step jumps once, a drift moves
+    # evenly, a random walk wanders, noise does not move at all)
+    tc = d.block_t0 - d.block_t0.mean()
+    tc = tc / max(np.abs(tc).max(), 1e-12)
+    for c in range(C):
+        jv = np.full((M, 6), np.nan)
+        for m in range(M):
+            used = [b for b in range(d.n_blocks) if mult[m, b] > 0 and np.isfinite(coef[c, b, :4]).all()]
+            if len(used) >= 6:
+                o = coef[c, used, 1:4]
+                dd = np.linalg.norm(np.diff(o, axis=0), axis=1)
+                jv[m, 0] = np.log(dd.max() / max(np.median(dd), 1e-12))
+                jv[m, 1] = np.log(np.sum(dd * dd) / max(np.sum((o - o.mean(axis=0)) ** 2), 1e-12))
+                x = tc[used] - tc[used].mean()
+                jv[m, 2:] = (x @ (coef[c, used, :4] - coef[c, used, :4].mean(axis=0))) / max(x @ x, 1e-12)
+        p.add("changes", ch[c], ["largest / median block-to-block change of the apparent hard iron (log)",
+                                 "von Neumann ratio of the apparent hard iron (log)",
+                                 "trend of the mean residual over the recording", "trend of the apparent hard iron x",
+                                 "trend of the apparent hard iron y", "trend of the apparent hard iron z"],
+              jv, [0.01, 0.01, 1e-3, 1e-3, 1e-3, 1e-3])
+    # alignment: the dip residual regressed on a small rotation of the field against gravity
+    if "rXX" in s:
+        XX = np.einsum("bk,mb->mk", s["rXX"], mult)
+        Xe = np.einsum("bk,mb->mk", s["rXe"], mult)
+        A = np.zeros((M, 3, 3))
+        for k, (i, j) in enumerate((i, j) for i in range(3) for j in range(i, 3)):
+            A[:, i, j] = A[:, j, i] = XX[:, k]
+        A += 1e-9 * np.maximum(np.trace(A, axis1=1, axis2=2), 1e-12)[:, None, None] * np.eye(3)
+        rot = np.linalg.solve(A, Xe[..., None])[..., 0]
+        p.add("alignment", "dip", [f"apparent rotation against gravity {a}" for a in "xyz"], rot, 1e-4)
+    # aux
+    for name in d.aux_bins:
+        XX = np.einsum("cbkj,mb->mckj", s["aXX:" + name], mult)
+        Xe = np.einsum("cbkj,mb->mckj", s["aXe:" + name], mult)
+        cf = _solve6(XX, Xe)                     # (M, C, nb, 6)
+        edges = d.aux_edges[name]
+        labs = []
+        for k in range(N_AUX_BINS):
+            lab = f"{edges[k]:.3g}..{edges[k + 1]:.3g}" if k + 1 < edges.size else "-"
+            labs += [f"{lab} {r}" for r in REG_NAMES]
+        nbins = edges.size - 1
+        cf[:, :, nbins:, :] = np.nan
+        # the trend across bins (per full span of the signal): what a linear dependence moves
+        x = d.aux_centres[name]
+        nb_w = XX[..., :nbins, 0]                          # (M, C, nbins) samples per bin
+        y = cf[:, :, :nbins, :4]
+        ok = np.isfinite(y).all(axis=-1) & (nb_w > 0)
+        wgt = np.where(ok, nb_w, 0.0)
+        xm = np.sum(wgt * x, axis=-1, keepdims=True) / np.maximum(wgt.sum(-1, keepdims=True), 1e-12)
+        dx = (x - xm) * (wgt > 0)
+        den = np.sum(wgt * dx * dx, axis=-1)
+        slope = np.einsum("mcb,mcbj->mcj", wgt * dx, np.nan_to_num(y)) / np.maximum(den, 1e-12)[..., None]
+        slope[(ok.sum(-1) < 3) | (den <= 0)] = np.nan
+        for c in range(C):
+            p.add("aux:" + name, ch[c], labs + [f"trend over its span: {r}" for r in REG_NAMES[:4]],
+                  np.concatenate([cf[:, c].reshape(M, -1), slope[:, c]], axis=1), 1e-3)
+    # frequency
+    sp, spn = aggc(s["spec"]), aggc(s["spec_n"])
+    av, avn = aggc(s["avar"]), aggc(s["avar_n"])
+    blabs = [f"band {BAND_FRACTIONS[k]:.3g}-{BAND_FRACTIONS[k + 1]:.3g} x Nyquist"
+             for k in range(BAND_FRACTIONS.size - 1)]
+    alabs = [f"Allan variance at {tau} samples" for tau in TAUS]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for c in range(C):
+            band = np.where((spn[:, c] > 0) & (sp[:, c] > 0), np.log(sp[:, c] / spn[:, c]), np.nan)
+            allan = np.where((avn[:, c] > 0) & (av[:, c] > 0), np.log(av[:, c] / avn[:, c]), np.nan)
+            p.add("frequency", ch[c], blabs, band, 0.01)
+            p.add("frequency", ch[c], alabs, allan, 0.01)
+    # weights (norm channel)
+    nv, no = aggc(s["nvalid"])[:, 0], aggc(s["out"])[:, 0]
+    fr = no / np.maximum(nv, 1)
+    p.add("weights", "norm", "down-weighted, all", fr, _binom_floor(fr, nv))
+    nvb, nob = s["nvalid"][0], s["out"][0]
+    frb = np.where(nvb > 0, nob / np.maximum(nvb, 1), np.nan)
+    vb = np.where((mult > 0) & (nvb > 0), frb[None, :], np.nan)
+    fb = _binom_floor(np.broadcast_to(frb, vb.shape), np.broadcast_to(nvb, vb.shape))
+    p.add("weights", "norm", [f"down-weighted {bl}" for bl in blab], vb, fb, mult)
+    co, cv = agg(s["cell_out"]), agg(s["cell_valid"])
+    frc = np.where(cv >= 20, co / np.maximum(cv, 1), np.nan)
+    p.add("weights", "norm", [f"down-weighted in {lab}" for lab in labels_cells], frc, _binom_floor(frc, cv))
+    # raw
+    rn = np.maximum(agg(s["raw_n"]), 1.0)                 # (M,)
+    lc, lsn = np.einsum("jb,mb->mj", s["lat_c"], mult), np.einsum("jb,mb->mj", s["lat_s"], mult)
+    pile = np.einsum("jsb,mb->mjs", s["pile"], mult)
+    for j, ax in enumerate("xyz"):
+        p.add("raw", "m" + ax, "lattice strength", np.hypot(lc[:, j], lsn[:, j]) / rn, 1.0 / np.sqrt(rn))
+        for k, side in enumerate(("max", "min")):
+            f = pile[:, j, k] / rn
+            p.add("raw", "m" + ax, f"pile-up at {side}", f, _binom_floor(f, rn))
+    # timing
+    ck = np.einsum("kb,mb->mk", s["clock"], mult)
+    nn = np.maximum(ck[:, 0], 1.0)
+    ndt = np.maximum(ck[:, 0] + ck[:, 3] + ck[:, 4], 1.0)
+    p.add("timing", "t", "mean |dt - dt0| / dt0", ck[:, 1] / nn, 1e-4)
+    p.add("timing", "t", "rms (dt - dt0) / dt0", np.sqrt(ck[:, 2] / nn), 1e-4)
+    p.add("timing", "t", "lost samples per step", ck[:, 3] / ndt, _binom_floor(ck[:, 3] / ndt, ndt))
+    p.add("timing", "t", "steps shorter than dt0/2", ck[:, 4] / ndt, _binom_floor(ck[:, 4] / ndt, ndt))
+    return p

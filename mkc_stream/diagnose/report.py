@@ -1,0 +1,201 @@
+"""The diagnosis for people: a headline, the largest gaps, the attribution table, and plots.
+
+``text(diag)`` is the report printed by ``mkc-stream diagnose``; ``write(diag, directory)``
+saves it as ``report.md`` beside PNG plots (needs matplotlib, the ``plot`` extra):
+residual against time with the replicas' 5-95% band, the sphere map of the mean residual,
+the residual spectrum against the replicas', and the residual against each aux signal.
+"""
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+HEADLINES = {
+    "no_gap": "NO GAP: the simulator reproduces this recording (gap index at its null level).",
+    "explained": "EXPLAINED: the gap is closed by {effects}.",
+    "partially_explained": "PARTLY EXPLAINED: {effects} close part of the gap; the rest is not in the library.",
+    "unexplained": "UNEXPLAINED: there is a gap, and no effect of the library closes it.",
+}
+
+
+def _fmt(x, nd=3):
+    return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}g}"
+
+
+def headline(diag) -> str:
+    return HEADLINES[diag.verdict].format(effects=" + ".join(diag.selected) or "-")
+
+
+def text(diag, source="") -> str:
+    L = []
+    info = diag.info
+    L.append(f"mkc-stream diagnose: {source}".rstrip(": "))
+    L.append(f"  {headline(diag)}")
+    dec = f", decimated by {info['decimation']}" if info.get("decimation", 1) > 1 else ""
+    L.append(f"  recording     : {info['samples']} samples over {info['duration_s']:.1f} s{dec}; "
+             f"aux used: {', '.join(info['aux_used']) or 'none'}")
+    b = info["baseline"]
+    L.append(f"  baseline      : field {b['field']:.4g} {info['unit']}, white noise {b['noise']:.3g} {info['unit']}, "
+             f"bursts {b['burst_fraction']:.1%}"
+             + (f", dip {b['dip_deg']:.1f} deg" if b.get("dip_deg") is not None else ""))
+    L.append(f"  gap index     : {_fmt(diag.gap_before)} (held-out; no-gap level 1, alarm above {_fmt(diag.threshold)})"
+             + (f" -> {_fmt(diag.gap_after)} with {' + '.join(diag.selected)}" if diag.selected else ""))
+    if diag.verdict != "no_gap":
+        L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the excess held-out gap closed")
+    if diag.ambiguous_with:
+        L.append(f"  ambiguous with: {', '.join(diag.ambiguous_with)} (the data cannot tell these apart)")
+    L.append("")
+    L.append("  largest gaps (z = real against the replicas, in replica standard deviations)")
+    L.append(f"    {'family':14s} {'channel':8s} {'where':52s} {'z':>7s}")
+    for w in diag.where[:10]:
+        L.append(f"    {w['family']:14s} {w['channel']:8s} {w['bin'][:52]:52s} {w['z']:7.1f}")
+    L.append("")
+    L.append("  attribution (held-out blocks; shrink = fraction of the excess gap closed, 90% interval)")
+    L.append(f"    {'effect':24s} {'status':13s} {'shrink':>7s} {'interval':>15s}  magnitude")
+    for r in diag.effects:
+        if not r.testable:
+            continue
+        ci = f"[{r.shrink_ci[0]:.2f}, {r.shrink_ci[1]:.2f}]" if r.shrink_ci else ""
+        mag = ""
+        if r.magnitude:
+            mag = f"{_fmt(r.magnitude['value'])} {r.magnitude.get('unit', '')}"
+            if r.magnitude_ci and r.magnitude_ci.get("value"):
+                lo, hi = r.magnitude_ci["value"]
+                mag += f" [{_fmt(lo)}, {_fmt(hi)}]"
+        L.append(f"    {r.name:24s} {r.status:13s} {_fmt(r.shrink, 2):>7s} {ci:>15s}  {mag}")
+    nt = [r for r in diag.effects if not r.testable]
+    if nt:
+        L.append("")
+        L.append("  not testable with this recording (not the same as absent):")
+        for r in nt:
+            L.append(f"    {r.name:24s} {r.reason}")
+    if diag.excluded:
+        L.append(f"  left out of the library on request: {', '.join(diag.excluded)}")
+    L.append(f"  ({info['replicas']} replicas, profile {info['profile']}, {info['seconds']:.1f} s)")
+    return "\n".join(L)
+
+
+def _band(x, q=(5, 95)):
+    return np.nanpercentile(x, q[0], axis=0), np.nanpercentile(x, q[1], axis=0)
+
+
+def _smooth(x, w):
+    from ..sim.trajectory import moving_average
+
+    return moving_average(x[:, None], w)[:, 0]
+
+
+def plots(diag, directory) -> list:
+    """Save the PNG plots; returns their paths (empty without matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    out = pathlib.Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    eng = diag.engine
+    ev = diag.evaluations["baseline"]
+    frame, unit = eng.frame, eng.frame.unit
+    t = frame.t - frame.t[0]
+    e = np.where(ev.inlier[:, 0], ev.e[:, 0], np.nan)
+    reps = np.where(np.abs(ev.rep_e[:, :, 0]) < 4 * eng.base.sigma[0], ev.rep_e[:, :, 0], np.nan)
+    w = max(5, frame.n // 200)
+    paths = []
+
+    def fill(a):
+        return np.where(np.isfinite(a), a, 0.0)
+
+    fig, ax = plt.subplots(figsize=(10, 4))
+    sm = np.array([_smooth(fill(r), w) for r in reps])
+    lo, hi = _band(sm)
+    ax.fill_between(t, lo, hi, color="0.8", label="replicas 5-95%")
+    ax.plot(t, _smooth(fill(e), w), color="C3", lw=1, label="real (baseline)")
+    fin = diag.evaluations.get("final")
+    if diag.selected and fin is not None:
+        ef = np.where(fin.inlier[:, 0], fin.e[:, 0], 0.0)
+        ax.plot(t, _smooth(ef, w), color="C2", lw=1, label="real with " + " + ".join(diag.selected))
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"norm residual ({unit}), {w}-sample mean")
+    ax.set_title(headline(diag), fontsize=9)
+    ax.legend(fontsize=8)
+    paths.append(out / "residual_time.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    v = ev.fit.v
+    lon = np.degrees(np.arctan2(v[:, 1], v[:, 0]))
+    fig, ax = plt.subplots(figsize=(8, 4))
+    hb = ax.hexbin(lon, v[:, 2], C=fill(e), reduce_C_function=np.mean, gridsize=30, cmap="coolwarm")
+    lim = float(np.nanpercentile(np.abs(np.ma.filled(hb.get_array(), np.nan)), 98)) or 1.0
+    hb.set_clim(-lim, lim)
+    fig.colorbar(hb, ax=ax, label=f"mean norm residual ({unit})")
+    ax.set_xlabel("longitude of the calibrated field (deg)")
+    ax.set_ylabel("z of the calibrated field direction (equal area)")
+    ax.set_title("where on the sphere the residual departs", fontsize=9)
+    paths.append(out / "sphere.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    from scipy.signal import welch
+
+    fs = 1.0 / frame.dt0
+    nper = min(1024, frame.n // 8)
+    f, P = welch(fill(e), fs=fs, nperseg=nper)
+    Pr = np.array([welch(fill(r), fs=fs, nperseg=nper)[1] for r in reps])
+    lo, hi = _band(Pr)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.fill_between(f[1:], lo[1:], hi[1:], color="0.8", label="replicas 5-95%")
+    ax.loglog(f[1:], P[1:], color="C3", label="real")
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel(f"PSD of the norm residual ({unit}^2/Hz)")
+    ax.legend(fontsize=8)
+    paths.append(out / "spectrum.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    for name, x in frame.aux.items():
+        edges = np.unique(np.quantile(x, np.linspace(0, 1, 21)))
+        if edges.size < 3:
+            continue
+        idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, edges.size - 2)
+        centres = 0.5 * (edges[1:] + edges[:-1])
+
+        def binned(y):
+            ok = np.isfinite(y)
+            s = np.bincount(idx[ok], weights=y[ok], minlength=edges.size - 1)
+            c = np.bincount(idx[ok], minlength=edges.size - 1)
+            return np.where(c > 0, s / np.maximum(c, 1), np.nan)
+        br = np.array([binned(r) for r in reps])
+        lo, hi = _band(br)
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.fill_between(centres, lo, hi, color="0.8", label="replicas 5-95%")
+        ax.plot(centres, binned(e), "o-", color="C3", label="real")
+        ax.set_xlabel(name)
+        ax.set_ylabel(f"mean norm residual ({unit})")
+        ax.legend(fontsize=8)
+        paths.append(out / f"aux_{name}.png")
+        fig.tight_layout()
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths
+
+
+def write(diag, directory, source="") -> list:
+    """report.md (the text report and the plot list) and the PNG plots in ``directory``."""
+    out = pathlib.Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = plots(diag, out)
+    body = ["# Sim-to-real gap diagnosis", "", "```", text(diag, source), "```", ""]
+    if paths:
+        body += [f"![{p.stem}]({p.name})" for p in paths]
+    else:
+        body.append("(plots need matplotlib: pip install 'mkc-stream[plot]')")
+    (out / "report.md").write_text("\n".join(body) + "\n", encoding="utf-8")
+    return [out / "report.md"] + paths

@@ -1,0 +1,36 @@
+"""The effect library: ``EFFECTS[name]`` for every effect the simulator can add.
+
+One module per effect family (thermal, electrical, drift, nonlinear, alignment, noise, timing);
+names follow spec/machine-output.md.
+"""
+from __future__ import annotations
+
+from . import alignment, drift, electrical, noise, nonlinear, thermal, timing
+from .base import STAGES, Effect, Evidence, Param, SimContext
+
+EFFECTS: dict[str, Effect] = {
+    e.name: e
+    for module in (thermal, electrical, drift, nonlinear, alignment, noise, timing)
+    for e in module.EFFECTS
+}
+
+__all__ = ["EFFECTS", "STAGES", "Effect", "Evidence", "Param", "SimContext", "parse_effect"]
+
+
+def parse_effect(text: str) -> tuple[str, dict]:
+    """``"NAME:param=value,param=value"`` (or ``NAME`` alone) -> (name, {param: float})."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    if name not in EFFECTS:
+        raise ValueError(f"unknown effect {name!r}; the library has {', '.join(sorted(EFFECTS))}")
+    params = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"effect parameter {item!r} is not of the form name=value")
+        try:
+            params[key.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"effect parameter {key.strip()!r} of {name}: {value!r} is not a number") from None
+    EFFECTS[name].resolve(params)      # unknown parameter names raise here
+    return name, params

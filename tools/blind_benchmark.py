@@ -1,0 +1,436 @@
+#!/usr/bin/env python
+"""Blind benchmark of the sim-to-real gap diagnosis (issue 6).
+
+    python tools/blind_benchmark.py --trials 120 --out bench_blind --jobs 2
+
+Three separate steps, so the diagnoser never sees a label:
+
+1. ``generate``: recordings with no effect, one effect, two confusable ones, or one that is
+   removed from the diagnoser's library, each written as a recording CSV with every aux column
+   (temp, current, throttle, voltage, accelerometer, gyroscope) under ``OUT/recordings``; the
+   labels (what was injected, how strongly) go to ``OUT/sealed/labels.json``. Effects are
+   injected with forward models that differ from the library's own forms (a two-node thermal
+   RC ladder, a wire pair's Biot-Savart field, tanh compression, a play-operator hysteresis,
+   a first-order filter for latency, flicker noise, exponential relaxation ...), so the test is
+   not circular.
+2. ``run``: ``diagnose`` on every recording (only the recording, plus the library restriction
+   of "removed" trials, which is part of the trial's setup, not of its label), results to
+   ``OUT/results``.
+3. ``score``: only now the labels are read; the acceptance figures are printed and written to
+   ``OUT/score.json``.
+
+``--subset ci`` runs the small fixed subset that CI runs (tests/test_diagnose_blind.py).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mkc_stream.sim import SensorModel, generate as make_trajectory, simulate  # noqa: E402
+from mkc_stream.sim.effects.base import first_order_lag  # noqa: E402
+from mkc_stream.sim.effects.noise import gauss_markov  # noqa: E402
+
+DURATION, RATE = 500.0, 20.0          # 10^4 samples
+SINGLE = ("temperature_offset", "temperature_scale", "current_hard_iron", "throttle_hard_iron",
+          "hard_iron_drift", "hard_iron_step", "bias_random_walk", "scale_nonlinearity", "saturation",
+          "higher_order_soft_iron", "quantization", "colored_noise", "latency", "timestamp_jitter",
+          "sample_drops", "hysteresis", "misalignment")
+PAIRS = ("temperature_offset|hard_iron_drift", "current_hard_iron|throttle_hard_iron",
+         "cross_axis|misalignment", "colored_noise|bias_random_walk")
+REMOVED = ("temperature_offset", "current_hard_iron", "hard_iron_step", "scale_nonlinearity", "hysteresis",
+           "latency")
+CI_SUBSET = [("none", None), ("single", "current_hard_iron"), ("single", "hard_iron_step"),
+             ("single", "temperature_offset"), ("single", "saturation"), ("pair", "cross_axis|misalignment"),
+             ("removed", "hard_iron_step")]
+
+
+def loguniform(rng, lo, hi):
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
+def random_direction(rng):
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+class Inject:
+    """A custom forward model for the simulator (stage + apply)."""
+
+    def __init__(self, name, stage, fn):
+        self.name, self.stage, self.fn = name, stage, fn
+
+    def apply(self, ctx, params):
+        self.fn(ctx)
+
+
+def rc_ladder(t, T_board, taus):
+    """Die temperature behind the board sensor: a three-node thermal RC ladder (each node
+    exchanges heat with both neighbours, unlike a cascade of independent lags), integrated
+    with small explicit steps."""
+    ta, tb, tc = taus
+    T = np.full(3, T_board[0])
+    out = np.empty_like(T_board)
+    for k in range(len(t)):
+        dt = (t[k] - t[k - 1]) if k else 0.0
+        n = max(1, int(np.ceil(dt / (0.2 * min(taus)))))
+        h = dt / n
+        for _ in range(n):
+            d1 = (T_board[k] - T[0]) / ta + (T[1] - T[0]) / tb
+            d2 = (T[0] - T[1]) / tb + (T[2] - T[1]) / tc
+            d3 = (T[1] - T[2]) / tc
+            T = T + h * np.array([d1, d2, d3])
+        out[k] = T[2]
+    return out
+
+
+def wire_pair_field(rng, r_lo=0.07, r_hi=0.20, spacing=0.005):
+    """Field per ampere (uT/A) at the sensor of a supply/return wire pair (Biot-Savart)."""
+    mu0_2pi = 0.2                                      # uT m / A
+    d = random_direction(rng)                          # wire direction
+    r = rng.uniform(r_lo, r_hi)
+    perp = np.cross(d, random_direction(rng))
+    perp /= np.linalg.norm(perp)
+    sep = np.cross(d, perp)
+    B = np.zeros(3)
+    for sign, off in ((1.0, 0.5 * spacing), (-1.0, -0.5 * spacing)):
+        rv = r * perp + off * sep                      # from the wire to the sensor, perpendicular to it
+        B += sign * mu0_2pi * np.cross(d, rv) / (rv @ rv)
+    return B
+
+
+def make_injection(name, rng, traj, sensor):
+    """(custom effect objects, truth dict) for one effect."""
+    t = traj.t
+    T = t[-1] - t[0]
+    if name == "temperature_offset":
+        c = random_direction(rng) * loguniform(rng, 8.0, 40.0)          # nT/degC
+        Td = rc_ladder(t, traj.aux["temp"], rng.uniform(5, 30, 3)) - 25.0
+        curv = rng.uniform(-0.004, 0.004)                               # slight curvature, 1/degC
+
+        def fn(ctx):
+            ctx.m += np.outer(Td + curv * Td ** 2, c * 1e-3)
+        return [Inject(name, "offset", fn)], {"value": float(np.linalg.norm(c)), "unit": "nT/degC"}
+    if name == "temperature_scale":
+        a = np.abs(rng.normal(size=3)) * 0.5 + 0.5
+        a = a / np.linalg.norm(a) * loguniform(rng, 0.03, 0.15)        # %/degC
+        Td = rc_ladder(t, traj.aux["temp"], rng.uniform(5, 30, 3)) - 25.0
+
+        def fn(ctx):
+            ctx.m += (ctx.m - ctx.b) * np.outer(Td, a * 1e-2)
+        return [Inject(name, "sensor", fn)], {"value": float(np.linalg.norm(a)), "unit": "%/degC"}
+    if name == "current_hard_iron":
+        k = wire_pair_field(rng)
+        return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(np.outer(traj.aux["current"] - 0.0, k)))], \
+            {"value": float(np.linalg.norm(k)), "unit": "uT/A"}
+    if name == "throttle_hard_iron":
+        full = random_direction(rng) * loguniform(rng, 0.3, 3.0)       # uT at full throttle
+        thr = first_order_lag(t, np.clip(traj.aux["throttle"], 0, 1), 0.2)   # ESC and motor respond with a lag
+        return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(np.outer(thr ** 1.5, full)))], \
+            {"value": float(np.linalg.norm(full)), "unit": "uT"}
+    if name == "hard_iron_drift":
+        rate = loguniform(rng, 0.3, 1.5)                                 # uT/h initial
+        tau = rng.uniform(1.0, 3.0) * T
+        d = random_direction(rng) * rate / 3600.0 * tau
+        x = 1.0 - np.exp(-(t - t[0]) / tau)
+        mean_rate = float(np.linalg.norm(d) * x[-1] / T * 3600.0)
+        return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(np.outer(x, d)))], \
+            {"value": mean_rate, "unit": "uT/h"}
+    if name == "hard_iron_step":
+        delta = random_direction(rng) * loguniform(rng, 0.2, 1.5)
+        t0 = t[0] + rng.uniform(0.15, 0.85) * T
+        width = rng.uniform(0.3, 2.0)
+        x = 1.0 / (1.0 + np.exp(-(t - t0) / width))
+        return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(np.outer(x, delta)))], \
+            {"value": float(np.linalg.norm(delta)), "unit": "uT", "t_step": float(t0 - t[0])}
+    if name == "bias_random_walk":
+        q = loguniform(rng, 0.4, 1.5)                                    # uT/sqrt(h)
+        tc = np.arange(t[0], t[-1] + 1.0, 1.0)
+        w = np.cumsum(rng.normal(size=(tc.size, 3)), axis=0) * q / 60.0
+        walk = np.stack([np.interp(t, tc, w[:, j]) for j in range(3)], axis=1)
+        return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(walk))], {"value": q, "unit": "uT/sqrt(h)"}
+    if name == "scale_nonlinearity":
+        beta = loguniform(rng, 60.0, 400.0) * (0.5 + rng.uniform(size=3))   # nT departure at 50 uT
+        L = np.sqrt(50.0 ** 3 / (3.0 * beta * 1e-3))
+        dep = 50.0 - L * np.tanh(50.0 / L)
+
+        def fn(ctx):
+            x = ctx.m - ctx.b
+            ctx.m[:] = ctx.b + L * np.tanh(x / L)
+        return [Inject(name, "sensor", fn)], {"value": float(np.linalg.norm(dep) * 1e3), "unit": "nT"}
+    if name == "saturation":
+        def fn(ctx):
+            j = int(np.argmax(np.ptp(ctx.m, axis=0)))
+            level = float(np.percentile(ctx.m[:, j], 100 - rng.uniform(2.0, 5.0)))
+            ctx.truth["level"] = level
+            np.minimum(ctx.m[:, j], level, out=ctx.m[:, j])
+        return [Inject(name, "range", fn)], {"value": None, "unit": "uT", "from_ctx": "level"}
+    if name == "higher_order_soft_iron":
+        # three saturating "rods" of soft iron along random directions: dm = sum a_k (n_k.B)^2 / 50 uT
+        rods = [(random_direction(rng), random_direction(rng)) for _ in range(3)]
+        amp = loguniform(rng, 0.1, 0.4)                                # uT, observable RMS at 50 uT
+        from mkc_stream.diagnose.forms import norm_pattern_rms
+
+        def raw(B):
+            return sum(np.outer((B @ n) ** 2 / 50.0, a) for n, a in rods)
+        scale = amp / norm_pattern_rms(lambda u: raw(50.0 * u))
+        return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(scale * raw(ctx.B)))], \
+            {"value": amp, "unit": "uT"}
+    if name == "quantization":
+        lsb = float(np.mean(np.atleast_1d(sensor.noise))) * rng.uniform(1.0, 4.0)
+        off = rng.uniform(0, lsb)
+
+        def fn(ctx):
+            ctx.m[:] = (np.floor((ctx.m - off) / lsb) + 0.5) * lsb + off    # a mid-rise quantizer
+        return [Inject(name, "range", fn)], {"value": lsb, "unit": "uT"}
+    if name == "colored_noise":
+        sig = loguniform(rng, 0.05, 0.2)
+        taus = (0.5, 5.0, 30.0)
+        noise = sum(gauss_markov(rng, t, sig / np.sqrt(3), tau) for tau in taus)   # flicker-like
+        return [Inject(name, "noise", lambda ctx: ctx.m.__iadd__(noise))], {"value": sig, "unit": "uT"}
+    if name == "latency":
+        tau = loguniform(rng, 10.0, 50.0)                                # ms; group delay of a 1st-order filter
+
+        def fn(ctx):
+            for j in range(3):
+                ctx.B[:, j] = first_order_lag(ctx.t, ctx.B[:, j], tau * 1e-3)
+        return [Inject(name, "field", fn)], {"value": tau, "unit": "ms"}
+    if name == "timestamp_jitter":
+        mu = loguniform(rng, 0.5, 4.0)                                   # ms, mean = sd of an exponential delay
+
+        def fn(ctx):
+            ctx.t_out[:] = np.maximum.accumulate(ctx.t_out + rng.exponential(mu * 1e-3, ctx.n))
+        return [Inject(name, "clock", fn)], {"value": mu, "unit": "ms"}
+    if name == "sample_drops":
+        frac = rng.uniform(0.01, 0.05)
+
+        def fn(ctx):
+            lost, n = 0, ctx.n
+            while lost < frac * n:
+                s = int(rng.integers(1, n - 1))
+                L = int(rng.geometric(1 / 3.0))
+                lost += int(ctx.keep[s:s + L].sum())
+                ctx.keep[s:s + L] = False
+        return [Inject(name, "clock", fn)], {"value": frac, "unit": "fraction"}
+    if name == "hysteresis":
+        a = loguniform(rng, 0.08, 0.3)
+
+        def fn(ctx):
+            x = ctx.m - ctx.b
+            y = np.empty_like(x)
+            y[0] = x[0]
+            for k in range(1, ctx.n):                               # play operator, half-width a
+                y[k] = np.clip(y[k - 1], x[k] - a, x[k] + a)
+            ctx.m[:] = ctx.b + y
+        return [Inject(name, "sensor", fn)], {"value": a, "unit": "uT"}
+    if name in ("misalignment", "cross_axis"):
+        ang = loguniform(rng, 0.7, 3.0)
+        if name == "misalignment":
+            R = Rotation.from_rotvec(np.radians(ang) * random_direction(rng)).as_matrix()
+            return [Inject(name, "field", lambda ctx: ctx.B.__setitem__(slice(None), ctx.B @ R.T))], \
+                {"value": ang, "unit": "deg"}
+        K = np.radians(ang) * rng.normal(size=(3, 3)) / 1.5
+        np.fill_diagonal(K, 0.0)
+        rot = float(np.degrees(np.linalg.norm([K[2, 1] - K[1, 2], K[0, 2] - K[2, 0], K[1, 0] - K[0, 1]]) / 2))
+        return [Inject(name, "field", lambda ctx: ctx.B.__setitem__(slice(None), ctx.B @ (np.eye(3) + K).T))], \
+            {"value": rot, "unit": "deg"}
+    raise ValueError(name)
+
+
+def make_trial(kind, effect, seed):
+    """One recording and its label."""
+    rng = np.random.default_rng(seed)
+    other_loads, temp = True, "cycle"
+    truth = effect
+    if kind == "pair":
+        truth, _ = effect.split("|")
+        if truth == "temperature_offset":
+            temp = "ramp"
+        if truth == "current_hard_iron":
+            other_loads = False
+    traj = make_trajectory("hand" if rng.uniform() < 0.7 else "figure8", duration=DURATION, rate=RATE, seed=seed,
+                           temp=temp, power=True, other_loads=other_loads, temp_amplitude=rng.uniform(6, 12),
+                           temp_cycles=rng.uniform(3, 6))
+    from mkc_stream.calib.synthetic import random_soft_iron
+
+    sensor = SensorModel(field=rng.uniform(25.0, 65.0), hard_iron=tuple(rng.uniform(-30, 30, 3)),
+                         soft_iron=random_soft_iron(rng, 0.15), noise=rng.uniform(0.05, 0.15),
+                         burst_fraction=float(rng.choice([0.0, 0.01, 0.03])))
+    effects, label = [], {"kind": kind, "truth": None, "pair": None, "magnitude": None}
+    if truth is not None:
+        if truth == "colored_noise" and kind == "pair":
+            sig = loguniform(rng, 0.1, 0.3)
+            tau = rng.uniform(40.0, 80.0)
+            noise = gauss_markov(rng, traj.t, sig, tau)
+            effects = [Inject(truth, "noise", lambda ctx: ctx.m.__iadd__(noise))]
+            mag = {"value": sig, "unit": "uT"}
+        else:
+            effects, mag = make_injection(truth, rng, traj, sensor)
+        label.update(truth=truth, magnitude=mag, pair=effect.split("|") if kind == "pair" else None)
+    sim = simulate(traj, sensor, effects=[(e, {}) for e in effects], seed=seed + 1)
+    if label["magnitude"] and label["magnitude"].get("from_ctx"):
+        label["magnitude"]["value"] = float(sim.truth[label["magnitude"].pop("from_ctx")])
+    label["exclude"] = [truth] if kind == "removed" else []
+    return sim.recording, label
+
+
+def trial_plan(n, seed):
+    """A fixed mix: 15% no effect, 60% single (cycling through the effects), 12% pairs, 13% removed."""
+    n_none = max(1, round(0.15 * n))
+    n_pair = max(1, round(0.12 * n))
+    n_rem = max(1, round(0.13 * n))
+    n_single = max(1, n - n_none - n_pair - n_rem)
+    plan = [("none", None)] * n_none
+    plan += [("single", SINGLE[i % len(SINGLE)]) for i in range(n_single)]
+    plan += [("pair", PAIRS[i % len(PAIRS)]) for i in range(n_pair)]
+    plan += [("removed", REMOVED[i % len(REMOVED)]) for i in range(n_rem)]
+    return [(k, e, seed * 100_003 + i) for i, (k, e) in enumerate(plan)]
+
+
+def step_generate(out, plan):
+    rec_dir, sealed = out / "recordings", out / "sealed"
+    rec_dir.mkdir(parents=True, exist_ok=True)
+    sealed.mkdir(parents=True, exist_ok=True)
+    labels = {}
+    for i, (kind, effect, seed) in enumerate(plan):
+        rec, label = make_trial(kind, effect, seed)
+        name = f"trial{i:04d}"
+        rec.write(rec_dir / f"{name}.csv")
+        # the library restriction is the trial's setup (what the diagnoser is given), not its label
+        (rec_dir / f"{name}.setup.json").write_text(json.dumps({"exclude": label["exclude"]}))
+        labels[name] = {**label, "seed": seed}
+    (sealed / "labels.json").write_text(json.dumps(labels, indent=1))
+    return sorted(labels)
+
+
+def _diagnose_one(args):
+    path, out_dir = args
+    from mkc_stream.diagnose import diagnose
+    from mkc_stream.io.recording import read_recording
+
+    setup = json.loads(pathlib.Path(str(path).replace(".csv", ".setup.json")).read_text())
+    t0 = time.perf_counter()
+    d = diagnose(read_recording(path), exclude=setup["exclude"])
+    obj = d.to_json()
+    obj["seconds"] = time.perf_counter() - t0
+    (out_dir / (path.stem + ".json")).write_text(json.dumps(obj))
+    return path.stem, obj["verdict"], obj["seconds"]
+
+
+def step_run(out, jobs=1):
+    res = out / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    paths = sorted((out / "recordings").glob("trial*.csv"))
+    todo = [(p, res) for p in paths if not (res / (p.stem + ".json")).exists()]
+    if jobs > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(jobs) as pool:
+            for name, verdict, sec in pool.imap_unordered(_diagnose_one, todo):
+                print(f"  {name}: {verdict} ({sec:.1f} s)", flush=True)
+    else:
+        for item in todo:
+            name, verdict, sec = _diagnose_one(item)
+            print(f"  {name}: {verdict} ({sec:.1f} s)", flush=True)
+
+
+ALIASES = {"cross_axis": {"misalignment"}, "misalignment": {"cross_axis"}}
+CATCH_ALL = {"bias_random_walk", "colored_noise"}
+
+
+def step_score(out):
+    labels = json.loads((out / "sealed" / "labels.json").read_text())
+    rows = []
+    for name, lab in sorted(labels.items()):
+        r = json.loads((out / "results" / f"{name}.json").read_text())
+        eff = {e["name"]: e for e in r["effects"]}
+        truth = lab["truth"]
+        row = {"trial": name, "kind": lab["kind"], "truth": truth, "verdict": r["verdict"],
+               "selected": r["selected"], "ambiguous": r["ambiguous_with"], "seconds": r["seconds"]}
+        if truth and truth in eff:
+            e = eff[truth]
+            row["shrink_truth"] = e["shrink"]
+            row["mag_true"] = lab["magnitude"]["value"]
+            row["mag_est"] = (e.get("magnitude") or {}).get("value")
+        wrong = [e for n, e in eff.items() if n != truth and n not in ALIASES.get(truth, set()) and e["shrink"] is not None]
+        row["best_wrong"] = max([e["shrink"] for e in wrong], default=None)
+        row["best_wrong_det"] = max([e["shrink"] for e in wrong if e["name"] not in CATCH_ALL], default=None)
+        row["best_wrong_given"] = max([e.get("shrink_given_selected") or 0.0 for e in wrong], default=None)
+        rows.append(row)
+    S = {}
+    none = [r for r in rows if r["kind"] == "none"]
+    S["false_alarm_rate"] = float(np.mean([r["verdict"] != "no_gap" for r in none])) if none else None
+    single = [r for r in rows if r["kind"] == "single"]
+    S["single_detected"] = float(np.mean([r["verdict"] != "no_gap" for r in single])) if single else None
+    S["named_first"] = float(np.mean([bool(r["selected"]) and r["selected"][0] == r["truth"] for r in single])) if single else None
+    per = {}
+    for r in single:
+        per.setdefault(r["truth"], []).append(bool(r["selected"]) and r["selected"][0] == r["truth"])
+    S["named_first_per_effect"] = {k: float(np.mean(v)) for k, v in sorted(per.items())}
+    S["named_first_or_ambiguous"] = float(np.mean([r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in single])) if single else None
+    det = [r for r in single if r["verdict"] != "no_gap"]
+    sh = [r.get("shrink_truth") for r in det]
+    S["shrink_correct_ge_0.7"] = float(np.mean([s is not None and s >= 0.7 for s in sh])) if det else None
+    S["shrink_correct_median"] = float(np.median([s for s in sh if s is not None])) if det else None
+    bw = [r["best_wrong"] for r in det if r["best_wrong"] is not None]
+    S["best_wrong_le_0.3"] = float(np.mean([b <= 0.3 for b in bw])) if bw else None
+    S["best_wrong_median"] = float(np.median(bw)) if bw else None
+    bwd = [r["best_wrong_det"] for r in det if r["best_wrong_det"] is not None]
+    S["best_wrong_deterministic_le_0.3"] = float(np.mean([b <= 0.3 for b in bwd])) if bwd else None
+    bwg = [r["best_wrong_given"] for r in det if r["best_wrong_given"] is not None]
+    S["best_wrong_given_selected_le_0.3"] = float(np.mean([b <= 0.3 for b in bwg])) if bwg else None
+    pairs = [r for r in rows if r["kind"] == "pair"]
+    S["pair_truth_in_set"] = float(np.mean([r["truth"] in r["selected"] + r["ambiguous"] for r in pairs])) if pairs else None
+    rem = [r for r in rows if r["kind"] == "removed"]
+    S["removed_unexplained_or_partial"] = float(np.mean([r["verdict"] in ("unexplained", "partially_explained") for r in rem])) if rem else None
+    S["removed_wrong_claimed"] = float(np.mean([r["verdict"] == "explained" for r in rem])) if rem else None
+    mags = [abs(r["mag_est"] / r["mag_true"] - 1) for r in det
+            if r.get("mag_est") is not None and r.get("mag_true") and r["selected"][:1] == [r["truth"]]]
+    S["magnitude_rel_error_median"] = float(np.median(mags)) if mags else None
+    per_mag = {}
+    for r in det:
+        if r.get("mag_est") is not None and r.get("mag_true") and r["selected"][:1] == [r["truth"]]:
+            per_mag.setdefault(r["truth"], []).append(abs(r["mag_est"] / r["mag_true"] - 1))
+    S["magnitude_rel_error_median_per_effect"] = {k: float(np.median(v)) for k, v in sorted(per_mag.items())}
+    secs = [r["seconds"] for r in rows]
+    S["seconds_median"], S["seconds_max"] = float(np.median(secs)), float(np.max(secs))
+    S["trials"] = len(rows)
+    (out / "score.json").write_text(json.dumps({"summary": S, "rows": rows}, indent=1))
+    return S, rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--trials", type=int, default=60)
+    ap.add_argument("--out", default="bench_blind")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--subset", choices=("ci",), help="the fixed small subset CI runs")
+    ap.add_argument("--step", choices=("all", "generate", "run", "score"), default="all")
+    a = ap.parse_args(argv)
+    out = pathlib.Path(a.out)
+    plan = [(k, e, 7919 * (i + 1)) for i, (k, e) in enumerate(CI_SUBSET)] if a.subset else trial_plan(a.trials, a.seed)
+    if a.step in ("all", "generate"):
+        print(f"generating {len(plan)} recordings in {out}/recordings (labels sealed in {out}/sealed)")
+        step_generate(out, plan)
+    if a.step in ("all", "run"):
+        print("diagnosing (labels unread)")
+        step_run(out, a.jobs)
+    if a.step in ("all", "score"):
+        S, rows = step_score(out)
+        for r in rows:
+            print(f"  {r['trial']} {r['kind']:8s} {str(r['truth']):24s} -> {r['verdict']:20s} "
+                  f"{','.join(r['selected']) or '-':30s} amb {','.join(r['ambiguous']) or '-'}")
+        print(json.dumps(S, indent=1))
+
+
+if __name__ == "__main__":
+    main()
