@@ -71,7 +71,8 @@ def test_electrical_and_drift_units():
     n = 2000
     _, d, _ = added("current_hard_iron", {"kx": 0.1, "ky": -0.2, "kz": 0}, aux={"current": np.full(n, 5.0)})
     assert np.allclose(d, [0.5, -1.0, 0.0])
-    _, d, _ = added("throttle_hard_iron", {"kx": 2, "ky": 0, "kz": 0, "exponent": 1.5}, aux={"throttle": np.full(n, 0.25)})
+    _, d, _ = added("throttle_hard_iron", {"kx": 2, "ky": 0, "kz": 0, "exponent": 1.5},
+                    aux={"throttle": np.full(n, 0.25)})
     assert np.allclose(d[:, 0], 2 * 0.25 ** 1.5)
     c, d, _ = added("hard_iron_drift", {"vx": 1.0, "vy": 0, "vz": 0}, n=3601, rate=1.0)
     assert d[-1, 0] == pytest.approx(1.0)                      # 1 uT/h over an hour
@@ -101,12 +102,14 @@ def test_nonlinear_family_magnitudes():
     B = np.stack([50 * np.sin(2 * np.pi * t / 4), np.zeros_like(t), np.zeros_like(t)], 1)
     _, d, _ = added("hysteresis", {"width": 0.2, "rate": 1.0}, B=B)
     rising = np.gradient(B[:, 0]) > 0.5
-    assert np.allclose(d[rising, 0], -0.2, atol=0.01) and np.allclose(d[~rising & (np.gradient(B[:, 0]) < -0.5), 0], 0.2, atol=0.01)
+    falling = np.gradient(B[:, 0]) < -0.5
+    assert np.allclose(d[rising, 0], -0.2, atol=0.01) and np.allclose(d[falling, 0], 0.2, atol=0.01)
 
 
 def test_alignment_effects_rotate_the_sensed_field():
     c, _, B = added("misalignment", {"roll": 1.0, "pitch": 0.0, "yaw": 0.0})
-    ang = np.degrees(np.arccos(np.clip(np.sum(c.B * B, 1) / (np.linalg.norm(c.B, axis=1) * np.linalg.norm(B, axis=1)), -1, 1)))
+    cos = np.sum(c.B * B, 1) / (np.linalg.norm(c.B, axis=1) * np.linalg.norm(B, axis=1))
+    ang = np.degrees(np.arccos(np.clip(cos, -1, 1)))
     assert ang.max() == pytest.approx(1.0, abs=0.01)
     assert np.allclose(np.linalg.norm(c.B, axis=1), 50.0)      # a rotation keeps the field strength
     c, _, B = added("cross_axis", {"xy": 1.0, "xz": 0, "yx": 0, "yz": 0, "zx": 0, "zy": 0})
@@ -174,7 +177,8 @@ def test_simulate_command_round_trip(tmp_path, capsys):
     assert code == 0
     rec = read_recording(out)
     assert len(rec) == 600 and not rec.bad_rows
-    assert rec.columns == ["t", "mx", "my", "mz", "ax", "ay", "az", "gx", "gy", "gz", "temp", "throttle", "current", "voltage"]
+    assert rec.columns == ["t", "mx", "my", "mz", "ax", "ay", "az", "gx", "gy", "gz",
+                           "temp", "throttle", "current", "voltage"]
     again = tmp_path / "again.csv"
     rec.write(again)
     rec2 = read_recording(again)

@@ -158,7 +158,7 @@ def make_injection(name, rng, traj, sensor):
         walk = np.stack([np.interp(t, tc, w[:, j]) for j in range(3)], axis=1)
         return [Inject(name, "offset", lambda ctx: ctx.m.__iadd__(walk))], {"value": q, "unit": "uT/sqrt(h)"}
     if name == "scale_nonlinearity":
-        beta = loguniform(rng, 60.0, 400.0) * (0.5 + rng.uniform(size=3))   # nT departure at 50 uT
+        beta = loguniform(rng, 100.0, 500.0) * (0.5 + rng.uniform(size=3)) / np.sqrt(3)   # nT at 50 uT
         L = np.sqrt(50.0 ** 3 / (3.0 * beta * 1e-3))
         dep = 50.0 - L * np.tanh(50.0 / L)
 
@@ -197,12 +197,16 @@ def make_injection(name, rng, traj, sensor):
         noise = sum(gauss_markov(rng, t, sig / np.sqrt(3), tau) for tau in taus)   # flicker-like
         return [Inject(name, "noise", lambda ctx: ctx.m.__iadd__(noise))], {"value": sig, "unit": "uT"}
     if name == "latency":
-        tau = loguniform(rng, 10.0, 50.0)                                # ms; group delay of a 1st-order filter
+        lat = loguniform(rng, 5.0, 40.0)                                 # ms, the latency the filter adds
+        dt = 1.0 / RATE
+        tau = -dt / np.log(lat / (lat + dt * 1e3)) * 1e3                  # ms, its time constant
 
         def fn(ctx):
             for j in range(3):
                 ctx.B[:, j] = first_order_lag(ctx.t, ctx.B[:, j], tau * 1e-3)
-        return [Inject(name, "field", fn)], {"value": tau, "unit": "ms"}
+        # the sampled filter y_k = y_k-1 + (1 - a)(x_k - y_k-1), a = exp(-dt/tau), delays slow
+        # signals by a / (1 - a) samples: that, not tau, is the latency it adds
+        return [Inject(name, "field", fn)], {"value": float(lat), "unit": "ms"}
     if name == "timestamp_jitter":
         mu = loguniform(rng, 0.5, 4.0)                                   # ms, mean = sd of an exponential delay
 
@@ -346,6 +350,10 @@ ALIASES = {"cross_axis": {"misalignment"}, "misalignment": {"cross_axis"}}
 CATCH_ALL = {"bias_random_walk", "colored_noise"}
 
 
+def frac(flags):
+    return float(np.mean(flags)) if len(flags) else None
+
+
 def step_score(out):
     labels = json.loads((out / "sealed" / "labels.json").read_text())
     rows = []
@@ -360,7 +368,8 @@ def step_score(out):
             row["shrink_truth"] = e["shrink"]
             row["mag_true"] = lab["magnitude"]["value"]
             row["mag_est"] = (e.get("magnitude") or {}).get("value")
-        wrong = [e for n, e in eff.items() if n != truth and n not in ALIASES.get(truth, set()) and e["shrink"] is not None]
+        wrong = [e for n, e in eff.items()
+                 if n != truth and n not in ALIASES.get(truth, set()) and e["shrink"] is not None]
         row["best_wrong"] = max([e["shrink"] for e in wrong], default=None)
         row["best_wrong_det"] = max([e["shrink"] for e in wrong if e["name"] not in CATCH_ALL], default=None)
         row["best_wrong_given"] = max([e.get("shrink_given_selected") or 0.0 for e in wrong], default=None)
@@ -370,12 +379,12 @@ def step_score(out):
     S["false_alarm_rate"] = float(np.mean([r["verdict"] != "no_gap" for r in none])) if none else None
     single = [r for r in rows if r["kind"] == "single"]
     S["single_detected"] = float(np.mean([r["verdict"] != "no_gap" for r in single])) if single else None
-    S["named_first"] = float(np.mean([bool(r["selected"]) and r["selected"][0] == r["truth"] for r in single])) if single else None
+    S["named_first"] = frac([bool(r["selected"]) and r["selected"][0] == r["truth"] for r in single])
     per = {}
     for r in single:
         per.setdefault(r["truth"], []).append(bool(r["selected"]) and r["selected"][0] == r["truth"])
     S["named_first_per_effect"] = {k: float(np.mean(v)) for k, v in sorted(per.items())}
-    S["named_first_or_ambiguous"] = float(np.mean([r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in single])) if single else None
+    S["named_first_or_ambiguous"] = frac([r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in single])
     det = [r for r in single if r["verdict"] != "no_gap"]
     sh = [r.get("shrink_truth") for r in det]
     S["shrink_correct_ge_0.7"] = float(np.mean([s is not None and s >= 0.7 for s in sh])) if det else None
@@ -388,9 +397,9 @@ def step_score(out):
     bwg = [r["best_wrong_given"] for r in det if r["best_wrong_given"] is not None]
     S["best_wrong_given_selected_le_0.3"] = float(np.mean([b <= 0.3 for b in bwg])) if bwg else None
     pairs = [r for r in rows if r["kind"] == "pair"]
-    S["pair_truth_in_set"] = float(np.mean([r["truth"] in r["selected"] + r["ambiguous"] for r in pairs])) if pairs else None
+    S["pair_truth_in_set"] = frac([r["truth"] in r["selected"] + r["ambiguous"] for r in pairs])
     rem = [r for r in rows if r["kind"] == "removed"]
-    S["removed_unexplained_or_partial"] = float(np.mean([r["verdict"] in ("unexplained", "partially_explained") for r in rem])) if rem else None
+    S["removed_unexplained_or_partial"] = frac([r["verdict"] in ("unexplained", "partially_explained") for r in rem])
     S["removed_wrong_claimed"] = float(np.mean([r["verdict"] == "explained" for r in rem])) if rem else None
     mags = [abs(r["mag_est"] / r["mag_true"] - 1) for r in det
             if r.get("mag_est") is not None and r.get("mag_true") and r["selected"][:1] == [r["truth"]]]

@@ -1,21 +1,31 @@
 """Which effect closes the gap, and by how much, on held-out blocks.
 
-1. Screen: every testable effect of the library is added alone to the baseline, fitted or
-   estimated on the training blocks, and scored on the held-out blocks (fewer replicas).
-2. Select greedily: the best few candidates are re-scored with all replicas; the best is kept
-   if it pays for its parameters: it must close at least ``MIN_STEP`` of the remaining excess
-   gap and the improvement must survive a bootstrap over held-out blocks (its 5% point > 0).
-   The next round adds each remaining effect to the kept ones (refitted jointly), and so on,
-   until the gap is at the null level, nothing pays, or ``MAX_EFFECTS`` are kept.
+All scores are cross-fitted (:meth:`Engine.evaluate`): every block is scored by a fit that did
+not see it.
+
+1. Screen: every testable effect of the library is added alone to the baseline (mean effects
+   fitted, stochastic/clock/mask effects estimated and added to the replicas) and scored with
+   fewer replicas.
+2. Select greedily: the best few candidates are re-scored with all replicas. Among
+   deterministic candidates that the bootstrap cannot rank (and that close at least
+   ``TIE_FRACTION`` of the best one's step), the simplest wins (fewest parameters and grid
+   settings). The choice is kept if it pays for its parameters: it closes at least ``MIN_STEP``
+   of the remaining excess gap and lowers the gap with ``PAY_CONFIDENCE`` in a block bootstrap
+   (real recording and replicas resampled alike). The next round adds each remaining effect to
+   the kept ones (refitted jointly), until the gap is at its null level, nothing pays, or
+   ``MAX_EFFECTS`` are kept.
    A stochastic effect that could mimic any slow deterministic one (random walk, coloured noise)
-   pays, in the gap index, the log of how much it widens the replicas (Dawid-Sebastiani), and is
-   preferred to a deterministic effect only when it is clearly better (bootstrap).
-3. Ambiguity: an effect whose gap is not significantly above the selected one's (paired
+   pays the log of how much it widens the replicas (Dawid-Sebastiani), counts only when it closes
+   the gap to its null level (or ``CATCH_ALL_CLOSE`` of it), beats a deterministic effect only
+   when it closes ``STOCHASTIC_MARGIN`` more, significantly, and is considered in the first round
+   only (after a deterministic effect, what is left is reported, not mopped up).
+3. Ambiguity: an effect whose gap is not significantly above the first selected one's (paired
    bootstrap), or is itself at the null level, is reported as indistinguishable
    (``ambiguous_with``); cross_axis and misalignment have the same observable and are always
    ambiguous with each other.
-4. Shrink = (G0 - G) / (G0 - 1) on held-out blocks with a bootstrap interval; magnitudes in
-   natural units with a bootstrap over training blocks.
+4. Shrink = (G0 - G) / (G0 - 1) with a bootstrap interval; magnitudes in natural units with a
+   bootstrap over the first fold's training blocks. For effects left out, the shrink they would
+   add on top of the selected ones is ``shrink_given_selected``.
 """
 from __future__ import annotations
 
@@ -35,6 +45,9 @@ N_VERIFY = 3
 EXPLAINED = 0.9                 # shrink that counts as explained even when the gap is not at its null level
 PARTIAL = 0.3
 FIRST_ALONE = 0.7               # several weak effects that together mimic a gap are not an explanation
+CATCH_ALL_CLOSE = 0.95          # ... or it closes nearly all of the gap
+PAY_CONFIDENCE = 0.9            # bootstrap confidence that an added effect lowers the gap
+TIE_FRACTION = 0.9              # candidates closing at least this fraction of the best one's step may tie
 STOCHASTIC_MARGIN = 0.15        # a catch-all stochastic effect must close this much more than the best
                                 # deterministic one
 
@@ -85,8 +98,8 @@ class Attribution:
         return self._boot_cache[key][1]
 
     def shrink_ci(self, ev_ref, ev):
-        """Bootstrap interval of the shrink; the excess gap it is a fraction of is held at its
-        estimate (resamples with almost no excess would otherwise divide by ~0)."""
+        """90% bootstrap interval of the shrink; the excess gap it is a fraction of is held at
+        its estimate (resamples with almost no excess would otherwise divide by ~0)."""
         g0, g1 = self.boot_gaps(ev_ref), self.boot_gaps(ev)
         ex = ev_ref.G - 1.0
         if not ex > 0:
@@ -95,7 +108,7 @@ class Attribution:
         s = s[np.isfinite(s)]
         if s.size < 10:
             return None
-        return [float(np.percentile(s, 5)), float(np.percentile(s, 95))]
+        return centred_interval(gap.shrink(ev_ref.G, ev.G), s)
 
     # -- screening ----------------------------------------------------------------------------
     def screen(self, ref: Evaluation, names, R):
@@ -145,7 +158,8 @@ class Attribution:
                     break
                 name, ev_best = best
                 step = gap.shrink(current.G, ev_best.G)
-                lo = float(np.percentile(self.boot_gaps(current) - self.boot_gaps(ev_best), 5))
+                gain = self.boot_gaps(current) - self.boot_gaps(ev_best)
+                lo = float(np.percentile(gain, 100 * (1 - PAY_CONFIDENCE)))
                 if not (np.isfinite(step) and step >= MIN_STEP and lo > 0):
                     self.log(f"  {name} does not pay (closes {step:.2f} of the remaining gap, bootstrap 5% {lo:.3g})")
                     break
@@ -179,8 +193,12 @@ class Attribution:
         def ok(n):
             return np.isfinite(scores.get(n, np.nan)) and scores[n] > 0
 
+        self._round_ref = current
         det = sorted([n for n in remaining if n not in CATCH_ALL and ok(n)], key=lambda n: -scores[n])[:N_VERIFY]
+        # a catch-all is an explanation of the gap, not a mop for what a wrong-form effect leaves:
+        # it competes in the first round only
         sto = sorted([n for n in remaining if n in CATCH_ALL and ok(n)], key=lambda n: -scores[n])[:1]
+        sto = sto if rnd == 0 else []
         full = {}
         for n in det + sto:
             cand = singles[n] if rnd == 0 else self.eng.extend(current, n)
@@ -190,12 +208,13 @@ class Attribution:
             self.log(f"  round {rnd + 1}: {n:24s} gap {full[n].G:.3f} (all replicas)")
             if rnd == 0:
                 self._set_single(results[n], full[n])
-        dets = [n for n in full if n not in CATCH_ALL]
+        dets = self._simplest_equivalent([n for n in full if n not in CATCH_ALL], full)
         # a catch-all stochastic effect is an explanation only when it makes the replicas
-        # indistinguishable from the recording (gap at its null level); closing part of a gap
-        # by widening the replicas says nothing about its cause
-        stos = [n for n in full if n in CATCH_ALL and full[n].G <= self.thr]
-        best_det = min(dets, key=lambda n: full[n].G) if dets else None
+        # indistinguishable from the recording (gap at its null level, or nearly all of it
+        # closed); closing part of a gap by widening the replicas says nothing about its cause
+        stos = [n for n in full if n in CATCH_ALL
+                and (full[n].G <= self.thr or gap.shrink(current.G, full[n].G) >= CATCH_ALL_CLOSE)]
+        best_det = dets[0] if dets else None
         best_sto = min(stos, key=lambda n: full[n].G) if stos else None
         if best_det is None and best_sto is None:
             return None
@@ -207,6 +226,23 @@ class Attribution:
             if s_sto >= s_det + STOCHASTIC_MARGIN and np.percentile(diff, 5) > 0:
                 return best_sto, full[best_sto]
         return best_det, full[best_det]
+
+    def _step(self, full, name):
+        return gap.shrink(self._round_ref.G, full[name].G)
+
+    def _simplest_equivalent(self, names, full):
+        """Candidates ordered best first, where "best" is the simplest (fewest parameters and
+        settings to choose from) among those whose gap is not significantly above the lowest
+        one (paired bootstrap): Occam between explanations the data cannot rank."""
+        if len(names) < 2:
+            return names
+        lead = min(names, key=lambda n: full[n].G)
+        gl = self.boot_gaps(full[lead])
+        s_lead = self._step(full, lead)
+        tied = [n for n in names if n == lead or (self._step(full, n) >= TIE_FRACTION * s_lead
+                                                  and np.percentile(self.boot_gaps(full[n]) - gl, 5) <= 0)]
+        pick = min(tied, key=lambda n: (complexity(n, full[n].cand, self.eng.env), full[n].G))
+        return [pick] + sorted([n for n in names if n != pick], key=lambda n: full[n].G)
 
     def _set_single(self, r, ev):
         r.shrink, r.gap, r.evaluation, r.verified = gap.shrink(self.ev0.G, ev.G), ev.G, ev, True
@@ -277,7 +313,7 @@ class Attribution:
                 for m in _resample(self.rng, train, eng.frame.n_blocks, 200):
                     th = bootstrap_theta(ev.fit, A_b, g_b, m)[i]
                     vals.append(form.magnitude(eng.env, term.design, th)["value"])
-                r.magnitude_ci = {"value": [float(np.percentile(vals, 5)), float(np.percentile(vals, 95))],
+                r.magnitude_ci = {"value": centred_interval(r.magnitude["value"], np.array(vals)),
                                   "unit": r.magnitude.get("unit")}
 
     def _estimated_ci(self, name, ev):
@@ -295,8 +331,26 @@ class Attribution:
                 vals.append(form.magnitude(eng.env, p)["value"])
         if len(vals) < 10:
             return None
-        return {"value": [float(np.percentile(vals, 5)), float(np.percentile(vals, 95))],
-                "unit": form.magnitude(eng.env, ev.cand.estimated[name]).get("unit")}
+        point = form.magnitude(eng.env, ev.cand.estimated[name])
+        return {"value": centred_interval(point["value"], np.array(vals)), "unit": point.get("unit")}
+
+
+def centred_interval(point, boot, level=0.9):
+    """Basic bootstrap interval around the point estimate: its spread from the resamples, its
+    centre from the estimate (the resamples' own statistics, e.g. without the kernel family, need
+    not be centred on it)."""
+    lo, med, hi = np.percentile(boot, [50 * (1 - level), 50, 50 * (1 + level)])
+    return [float(point + lo - med), float(point + hi - med)]
+
+
+def complexity(name, cand, env) -> float:
+    """Parameters of an effect in a candidate, plus log2 of the settings its grid chose from."""
+    form = FORMS[name]
+    if isinstance(form, MeanForm):
+        term = next((t for t in cand.terms if t.name == name), None)
+        n_opt = len(term.options) if term is not None and term.options else 1
+        return form.k + np.log2(n_opt)
+    return float(len(cand.estimated.get(name, {})))
 
 
 def verdict(detected, g0, g_final, selected, thr, first_shrink):

@@ -26,7 +26,6 @@ from .model import ModelFit, State, channels, fit_model, n_channels
 @dataclass
 class Baseline:
     fit: ModelFit                # on all samples
-    fit_train: ModelFit          # on the training blocks
     sigma: np.ndarray            # (C,) channel noise scale
     sigma_axis: np.ndarray       # (3,) white noise per raw axis
     sensor: SensorModel          # for replicas
@@ -195,7 +194,6 @@ def fit_baseline(frame: Frame) -> Baseline:
     if not np.all(sigma > 0):
         raise DiagnoseError("the residual noise is zero: nothing to compare against")
     fit = fit_model(frame, fit.state, [], valid, sigma, iters=2)
-    fit_train = fit_model(frame, fit.state, [], valid, sigma, fit_mask=frame.train, iters=2)
 
     sigma_axis = axis_noise(fit, s_hf)
     bursts = estimate_bursts(fit.e[:, 0], valid[:, 0], sigma[0])
@@ -219,5 +217,5 @@ def fit_baseline(frame: Frame) -> Baseline:
                   has_acc=frame.acc_unit is not None, has_gyro=frame.gyro is not None,
                   coverage=sphere_coverage(fit.v), rotation_rate=_rotation_rate(frame, fit.v),
                   timestamps_real=frame.timestamps_real)
-    return Baseline(fit=fit, fit_train=fit_train, sigma=sigma, sigma_axis=sigma_axis, sensor=sensor, traj=traj,
+    return Baseline(fit=fit, sigma=sigma, sigma_axis=sigma_axis, sensor=sensor, traj=traj,
                     valid=valid, lattice=lattice, clock=clock, evidence=ev, bursts=bursts, ellipsoid=ell)

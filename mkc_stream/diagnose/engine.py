@@ -73,8 +73,6 @@ class Evaluation:
 
 class Engine:
     def __init__(self, frame, base, n_replicas=40, seed=0):
-        from .baseline import Baseline  # noqa: F401  (type only)
-
         self.frame, self.base, self.R, self.seed = frame, base, int(n_replicas), int(seed)
         self.env = Env(frame, base)
         extra = {"turn_rate": self._turn_rate()}

@@ -1,10 +1,10 @@
 """The recording as the diagnoser sees it: checked, decimated if asked, split into time blocks.
 
-Blocks: the recording is cut into ``N_BLOCKS`` blocks of equal duration; even blocks train,
-odd blocks are held out. Why interleaved blocks rather than a first/second half: effects that
-depend on time (drift, steps, temperature cycles) must be seen in training wherever they act;
-held-out blocks between training blocks test the model on the same conditions without having
-fitted on them. 32 blocks keep a step's position uncertain by only 1/32 of the recording.
+Blocks: the recording is cut into ``N_BLOCKS`` blocks of equal duration; models are fitted on
+the even blocks and scored on the odd ones, and the other way round (cross-fitting, so no data
+are wasted). Why interleaved blocks rather than a first/second half: effects that depend on time
+(drift, steps, temperature cycles) must be seen in training wherever they act; held-out blocks
+between training blocks test the model on the same conditions without having fitted on them.
 """
 from __future__ import annotations
 
