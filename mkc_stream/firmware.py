@@ -358,21 +358,8 @@ def reason_kind(text: str) -> str:
     return "rejected: " + ", ".join(parts)
 
 
-@dataclass(frozen=True)
-class CCalibration:
-    hard_iron: np.ndarray
-    soft_iron: np.ndarray
-    field: float
-    sigma: float
-    d: float
-    quality: dict
-    accepted: bool
-    reason: str
-    samples_seen: int
-    esteps: int
-
-    def apply(self, raw):
-        return (np.asarray(raw, dtype=np.float64) - self.hard_iron) @ self.soft_iron.T
+# The C port's calibration is the same record as the Python calibrator's (same fields, same apply).
+from .calib.streaming import Calibration as CCalibration  # noqa: E402
 
 
 @dataclass

@@ -30,10 +30,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
 from bench_stream import ellipsoid_raw, ellipsoid_stream  # noqa: E402
+from bench_stream import estep_cost as estep_numba  # noqa: E402
 
 from mkc_stream import firmware as FW  # noqa: E402
 from mkc_stream.calib.streaming import MagCalibrator  # noqa: E402
-from mkc_stream.kernels import window as K  # noqa: E402
 from mkc_stream.stream import StreamingMKC  # noqa: E402
 
 
@@ -55,21 +55,6 @@ def learn_many_rate(make, X, Y, W):
         return time.perf_counter() - t0, est
     dt, est = best_of(run)
     return (X.shape[0] - 2 * W) / dt, est
-
-
-def estep_numba(est, repeat=200):
-    st = est._st
-    e_args = [st[k] for k in ("icfg", "fcfg", "X", "Y", "theta", "sigma", "d", "a", "Hes", "R", "ebuf", "cnt", "fst")]
-    r_args = [st[k] for k in ("icfg", "fcfg", "X", "Y", "C", "A", "b", "theta", "sigma", "d", "L", "D", "xs", "tprev",
-                              "cnt", "fst")]
-    saved = est.state
-    t0 = time.perf_counter()
-    for _ in range(repeat):
-        K.estep_window(*e_args)
-        K.rebuild(*r_args)
-    dt = (time.perf_counter() - t0) / repeat
-    est.load_state(saved)
-    return dt
 
 
 def estep_c(est, repeat=200):
