@@ -741,6 +741,7 @@ def _load_broad_arrays(path: pathlib.Path) -> dict:
             import h5py
         except ImportError:
             raise ImportError(f"reading {path.name} needs h5py: pip install h5py "
+                              f"(or pip install 'mkc-stream[hdf5]') "
                               f"(or use the .mat version of the trial)") from None
         out = {}
         with h5py.File(path, "r") as f:
