@@ -4,7 +4,7 @@
     python tools/gen_firmware_tables.py            # (re)write the header
     python tools/gen_firmware_tables.py --check    # exit 1 if the checked-in header is stale
 
-The Gauss-Legendre table (GL16 on [0, 1]), the normaliser's cut-off TAU and log(TAU), the status
+The Gauss-Legendre table (GL10 on [0, 1]), the normaliser's cut-off TAU and log(TAU), the status
 codes, the counter / configuration indices of the state, the kernel thresholds, the direction-cell
 grid, the StreamConfig and AcceptanceRules defaults and the MagCalibrator constants are read from
 mkc_stream itself, so the C port cannot drift from the Python reference without this check failing

@@ -3,9 +3,10 @@
  *
  * Z = 2 [ A exp(-sigma^2) + int_0^{min(A, u_c)} g(u) du ],  g = f - exp(-sigma^2),
  * f(u) = exp(-sigma^2 (1 - h)), h = exp(-u^2 / (2 sigma^2)). The floor is exact; the bounded integral
- * is composite Gauss-Legendre (16 nodes, the generated table) on panels sized to g's local scale,
+ * is composite Gauss-Legendre (10 nodes, the generated table) on panels sized to g's local scale,
  * about 6-15 panels for sigma in [0.05, 1e3]: a bounded cost (the loop cannot run away: each panel
- * advances u by at least min(1.5 min(1, sigma), 2 sigma, 10 sigma^2 / u) > 0 up to u_c).
+ * advances u by at least min(1.5 min(1, sigma), 2 sigma, 10 sigma^2 / u) > 0 up to u_c). Per node
+ * three libm calls: h = exp(-q) (or the series of 1 - h for small q), f, and g's expm1.
  */
 #define MKC_TABLES_WANT_GL
 #include "mkc_internal.h"
@@ -24,6 +25,20 @@ mkc_ereal mkc__cut_point(mkc_ereal sigma)
     if (h_c >= EC(1.0))
         return EC(0.0);
     return sigma * sqrt(EC(-2.0) * log(h_c));
+}
+
+/* (1 - h, h) with h = e^-q from at most one exp: omh = q - q^2/2 + q^3/6 - q^4/24 + q^5/120 for
+ * q < 1e-3, where 1 - h would cancel (f = exp(-sigma^2 omh) needs omh to a few ulps relative). */
+static void omh_h(mkc_ereal q, mkc_ereal *omh, mkc_ereal *h)
+{
+    if (q < EC(1e-3)) {
+        mkc_ereal o = q * (EC(1.0) - q * (EC(0.5) - q * (EC(1.0 / 6.0) - q * (EC(1.0 / 24.0) - q * (EC(1.0 / 120.0))))));
+        *omh = o;
+        *h = EC(1.0) - o;
+        return;
+    }
+    *h = exp(-q);
+    *omh = EC(1.0) - *h;
 }
 
 /* Head (|u| < 3 max(1, sigma)): width ~1 (big sigma) or ~sigma (small sigma) bump. Tail: g ~
@@ -50,9 +65,10 @@ mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_si
         for (j = 0; j < MKC_GL_ORDER; j++) {
             mkc_ereal x = u + span * EC(mkc_gl_nodes[j]);
             mkc_ereal q = x * x / (EC(2.0) * s2);
-            mkc_ereal h = exp(-q);
-            mkc_ereal f = exp(-s2 * (-expm1(-q)));
-            mkc_ereal g = f * (-expm1(-s2 * h));
+            mkc_ereal omh, h, f, g;
+            omh_h(q, &omh, &h);
+            f = exp(-s2 * omh);                   /* f = exp(-sigma^2 (1 - h)) */
+            g = f * (-expm1(-s2 * h));            /* g = f - exp(-sigma^2), without cancellation */
             mkc_ereal wj = span * EC(mkc_gl_weights[j]);
             Ig += wj * g;
             Ids += wj * (EC(2.0) * sigma * (f * h - g) + f * h * x * x / sigma);

@@ -34,7 +34,9 @@ void mkc__ellipsoid_features(mkc_real mx, mkc_real my, mkc_real mz, const mkc_re
     xk[8] = z;
 }
 
-const mkc_real *mkc__row(const mkc_core_t *c, int s, int i, mkc_real *buf)
+/* Row i of slot s (file-local, so that it inlines into the loops below also in a shared object,
+ * where the exported mkc__row could be interposed and so is called, not inlined). */
+static const mkc_real *row_at(const mkc_core_t *c, int s, int i, mkc_real *buf)
 {
     if (c->rows) {
         const mkc_mag_t *g = (const mkc_mag_t *)(const void *)c;
@@ -42,6 +44,11 @@ const mkc_real *mkc__row(const mkc_core_t *c, int s, int i, mkc_real *buf)
         return buf;
     }
     return ((const mkc_stream_t *)(const void *)c)->X[s][i];
+}
+
+const mkc_real *mkc__row(const mkc_core_t *c, int s, int i, mkc_real *buf)
+{
+    return row_at(c, s, i, buf);
 }
 
 static mkc_real target(const mkc_core_t *c, int s, int i)
@@ -76,6 +83,18 @@ static mkc_real weight_exponent_scale(mkc_real sigma, mkc_real d)
     return RC(1.0) / (RC(2.0) * d * d * sigma * sigma);
 }
 
+/* exp(-t) for t = e^2 / (2 d^2 sigma^2) >= 0 (kernels/correntropy.py gauss_weight): below t = 1e-3
+ * h = 1 - omh with omh = t - t^2/2 + t^3/6 - t^4/24 + t^5/120 (normaliser.c omh_h), within an ulp
+ * of exp(-t) and a few multiplies instead of a libm call (a wide kernel puts every weight there). */
+static mkc_real gauss_weight(mkc_real t)
+{
+    if (t < RC(1e-3)) {
+        mkc_real o = t * (RC(1.0) - t * (RC(0.5) - t * (RC(1.0 / 6.0) - t * (RC(1.0 / 24.0) - t * (RC(1.0 / 120.0))))));
+        return RC(1.0) - o;
+    }
+    return exp(-t);
+}
+
 /* A += c x x^T (lower triangle), b += c x y: one channel-row of eq. (15). */
 static void row_update(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x, mkc_real y, mkc_acc c, int n)
 {
@@ -85,6 +104,78 @@ static void row_update(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x, m
         b[p] += xp * (mkc_acc)y;
         for (q = 0; q <= p; q++)
             A[p][q] += xp * (mkc_acc)x[q];
+    }
+}
+
+/* Four consecutive channel-rows of eq. (15) in one pass over A, b: each element receives the four
+ * terms in row order, exactly the additions of four row_update calls (same operations, same order,
+ * same results), with one load and store of A per four rows instead of four. */
+static void row_update4(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *const *x, const mkc_real *y,
+                        const mkc_acc *c, int n)
+{
+    int p, q;
+    const mkc_real *x0 = x[0], *x1 = x[1], *x2 = x[2], *x3 = x[3];
+    for (p = 0; p < n; p++) {
+        mkc_acc xp0 = (mkc_acc)x0[p] * c[0], xp1 = (mkc_acc)x1[p] * c[1];
+        mkc_acc xp2 = (mkc_acc)x2[p] * c[2], xp3 = (mkc_acc)x3[p] * c[3];
+        mkc_acc t = b[p];
+        t += xp0 * (mkc_acc)y[0];
+        t += xp1 * (mkc_acc)y[1];
+        t += xp2 * (mkc_acc)y[2];
+        t += xp3 * (mkc_acc)y[3];
+        b[p] = t;
+        /* two columns per step, written as two isomorphic statements so that the compiler may pair
+         * them into one SIMD operation (element-wise: no reordering of any sum) */
+        for (q = 0; q + 1 <= p; q += 2) {
+            mkc_acc t0 = A[p][q], t1 = A[p][q + 1];
+            t0 += xp0 * (mkc_acc)x0[q];
+            t1 += xp0 * (mkc_acc)x0[q + 1];
+            t0 += xp1 * (mkc_acc)x1[q];
+            t1 += xp1 * (mkc_acc)x1[q + 1];
+            t0 += xp2 * (mkc_acc)x2[q];
+            t1 += xp2 * (mkc_acc)x2[q + 1];
+            t0 += xp3 * (mkc_acc)x3[q];
+            t1 += xp3 * (mkc_acc)x3[q + 1];
+            A[p][q] = t0;
+            A[p][q + 1] = t1;
+        }
+        if (q == p) {
+            t = A[p][q];
+            t += xp0 * (mkc_acc)x0[q];
+            t += xp1 * (mkc_acc)x1[q];
+            t += xp2 * (mkc_acc)x2[q];
+            t += xp3 * (mkc_acc)x3[q];
+            A[p][q] = t;
+        }
+    }
+}
+
+/* Two consecutive channel-rows in one pass (as row_update4): the per-sample "- old row, + new row". */
+static void row_update2(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x0, mkc_real y0, mkc_acc c0,
+                        const mkc_real *x1, mkc_real y1, mkc_acc c1, int n)
+{
+    int p, q;
+    for (p = 0; p < n; p++) {
+        mkc_acc xp0 = (mkc_acc)x0[p] * c0, xp1 = (mkc_acc)x1[p] * c1;
+        mkc_acc t = b[p];
+        t += xp0 * (mkc_acc)y0;
+        t += xp1 * (mkc_acc)y1;
+        b[p] = t;
+        for (q = 0; q + 1 <= p; q += 2) {         /* column pairs, as row_update4 */
+            mkc_acc t0 = A[p][q], t1 = A[p][q + 1];
+            t0 += xp0 * (mkc_acc)x0[q];
+            t1 += xp0 * (mkc_acc)x0[q + 1];
+            t0 += xp1 * (mkc_acc)x1[q];
+            t1 += xp1 * (mkc_acc)x1[q + 1];
+            A[p][q] = t0;
+            A[p][q + 1] = t1;
+        }
+        if (q == p) {
+            t = A[p][q];
+            t += xp0 * (mkc_acc)x0[q];
+            t += xp1 * (mkc_acc)x1[q];
+            A[p][q] = t;
+        }
     }
 }
 
@@ -114,37 +205,53 @@ static int solve_window(mkc_core_t *c, mkc_acc *cond)
 static int refine_theta(mkc_core_t *c)
 {
     int p, q, k, i, j, n = ICFG(c, MKC_I_N);
-    mkc_acc step = AC(0.0), size = AC(0.0), s[MKC_N];
+    mkc_acc step = AC(0.0), size = AC(0.0), s[MKC_N], th[MKC_N];
     /* r = D (b - A theta). Each s[p] subtracts A[p][q] theta[q] in ascending q (A[p][q] below the
-     * diagonal, A[q][p] above), as the reference's row loop; looping q outside lets the n sums
-     * proceed side by side instead of as one dependent chain. Same operations, same order per p. */
-    for (p = 0; p < n; p++)
-        s[p] = c->b[p];
-    for (q = 0; q < n; q++) {
-        mkc_acc tq = (mkc_acc)c->theta[q];
-        for (p = 0; p < q; p++)
-            s[p] -= c->A[q][p] * tq;
-        for (p = q; p < n; p++)
-            s[p] -= c->A[p][q] * tq;
+     * diagonal, A[q][p] above), as the reference's row loop. Two rows per pass, their sums in
+     * registers side by side (instead of one dependent chain, or sums bouncing through memory).
+     * Same operations, same order per p. */
+    for (q = 0; q < n; q++)
+        th[q] = (mkc_acc)c->theta[q];
+    for (p = 0; p + 1 < n; p += 2) {
+        mkc_acc s0 = c->b[p], s1 = c->b[p + 1];
+        for (q = 0; q < p; q++) {
+            s0 -= c->A[p][q] * th[q];
+            s1 -= c->A[p + 1][q] * th[q];
+        }
+        s0 -= c->A[p][p] * th[p];                  /* q = p */
+        s1 -= c->A[p + 1][p] * th[p];
+        s0 -= c->A[p + 1][p] * th[p + 1];          /* q = p + 1: above the diagonal for row p */
+        s1 -= c->A[p + 1][p + 1] * th[p + 1];
+        for (q = p + 2; q < n; q++) {
+            s0 -= c->A[q][p] * th[q];
+            s1 -= c->A[q][p + 1] * th[q];
+        }
+        s[p] = s0 * c->D[p];
+        s[p + 1] = s1 * c->D[p + 1];
     }
-    for (p = 0; p < n; p++)
-        s[p] *= c->D[p];
+    if (p < n) {                                   /* n odd: the last row, all of it below the diagonal */
+        mkc_acc s0 = c->b[p];
+        for (q = 0; q <= p; q++)
+            s0 -= c->A[p][q] * th[q];
+        s[p] = s0 * c->D[p];
+    }
     /* forward solve L z = r column by column (each s[p] still subtracts L[p][k] xs[k] in ascending
-     * k, after its scaling by D[p]); backward solve L^T y = z row by row, as the reference */
-    for (k = 0; k < n; k++) {
+     * k, after its scaling by D[p]); backward solve L^T y = z column by column, as the reference
+     * (each xs[i] subtracts L[k][i] y_k in descending k; critical path n steps, not n(n-1)/2) */
+    for (k = 0; k < n; k++) {       /* z and then y overwrite s in place (the reference's xs) */
         mkc_acc xk = s[k] * c->L[k][k];
-        c->xs[k] = xk;
+        s[k] = xk;
         for (p = k + 1; p < n; p++)
             s[p] -= c->L[p][k] * xk;
     }
-    for (i = n - 1; i >= 0; i--) {
-        mkc_acc t = c->xs[i];
-        for (k = i + 1; k < n; k++)
-            t -= c->L[k][i] * c->xs[k];
-        c->xs[i] = t * c->L[i][i];
+    for (k = n - 1; k >= 0; k--) {
+        mkc_acc yk = s[k] * c->L[k][k];
+        s[k] = yk;
+        for (i = k - 1; i >= 0; i--)             /* s[k - 1] first: the next step needs it */
+            s[i] -= c->L[k][i] * yk;
     }
     for (j = 0; j < n; j++) {
-        c->xs[j] *= c->D[j];
+        c->xs[j] = s[j] * c->D[j];
         step = mkc__max_a(step, fabs(c->xs[j]));
         size = mkc__max_a(size, (mkc_acc)fabs(c->theta[j]));
     }
@@ -163,8 +270,12 @@ static int rebuild_with(mkc_core_t *c, int have_r)
 {
     int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
     int count = (int)c->cnt[MKC_C_COUNT];
-    int status = MKC_NOT_CONVERGED, rnd, p, q, s, i, j, st;
-    mkc_real buf[MKC_N];
+    int status = MKC_NOT_CONVERGED, rnd, p, q, s, i, j, st, k;
+    /* up to four pending rows (c != 0) are added to A, b in one pass (row_update4); buf holds the
+     * recomputed features of a magnetometer window, one buffer per pending row */
+    mkc_real buf[4][MKC_N], py[4];
+    const mkc_real *px[4];
+    mkc_acc pc[4];
     for (rnd = 0; rnd < ICFG(c, MKC_I_FP_ROUNDS); rnd++) {
         mkc_acc wsum = AC(0.0), cond, num = AC(0.0), den = AC(0.0);
         for (p = 0; p < n; p++) {
@@ -173,9 +284,10 @@ static int rebuild_with(mkc_core_t *c, int have_r)
             for (q = 0; q < n; q++)
                 c->A[p][q] = AC(0.0);
         }
+        k = 0;
         for (s = 0; s < count; s++) {
             for (i = 0; i < m; i++) {
-                const mkc_real *x = mkc__row(c, s, i, buf);
+                const mkc_real *x = row_at(c, s, i, buf[k]);
                 mkc_real y = target(c, s, i);
                 mkc_real r, w, cc;
                 if (have_r && rnd == 0) {
@@ -185,14 +297,23 @@ static int rebuild_with(mkc_core_t *c, int have_r)
                     for (j = 0; j < n; j++)
                         r -= x[j] * c->theta[j];
                 }
-                w = exp(-r * r * weight_exponent_scale(c->sigma[i], c->d[i]));
+                w = gauss_weight(r * r * weight_exponent_scale(c->sigma[i], c->d[i]));  /* exp(-r^2/(2 d^2 s^2)) */
                 wsum += (mkc_acc)w;
                 cc = w * (RC(1.0) / (c->d[i] * c->d[i]));
                 c->C[s][i] = cc;
-                if (cc != RC(0.0))
-                    row_update(c->A, c->b, x, y, (mkc_acc)cc, n);
+                if (cc != RC(0.0)) {
+                    px[k] = x;
+                    py[k] = y;
+                    pc[k] = (mkc_acc)cc;
+                    if (++k == 4) {
+                        row_update4(c->A, c->b, px, py, pc, n);
+                        k = 0;
+                    }
+                }
             }
         }
+        for (j = 0; j < k; j++)           /* the last < 4 rows, in order */
+            row_update(c->A, c->b, px[j], py[j], pc[j], n);
         if (wsum < (mkc_acc)n) {
             /* fewer effective equations than unknowns: the kernel lost the data (a bad theta) */
             c->cnt[MKC_C_SINGULAR] += 1;
@@ -232,13 +353,31 @@ void mkc__estep_window(mkc_core_t *c)
     int count = (int)c->cnt[MKC_C_COUNT];
     int s, i, j;
     mkc_ereal Fsum = EC(0.0);
-    mkc_real buf[MKC_N];
-    for (s = 0; s < count; s++) {
+    mkc_real buf[MKC_N], buf2[MKC_N], th[MKC_N];
+    /* theta in a local copy: the stores to R cannot alias it, so the loads need not wait for them */
+    for (j = 0; j < n; j++)
+        th[j] = c->theta[j];
+    s = 0;
+    if (m == 1) {
+        /* one channel: two rows per pass, two independent dot products sharing the loop */
+        for (; s + 1 < count; s += 2) {
+            const mkc_real *x0 = row_at(c, s, 0, buf);
+            const mkc_real *x1 = row_at(c, s + 1, 0, buf2);
+            mkc_real r0 = target(c, s, 0), r1 = target(c, s + 1, 0);
+            for (j = 0; j < n; j++) {
+                r0 -= x0[j] * th[j];
+                r1 -= x1[j] * th[j];
+            }
+            c->R[s][0] = r0;
+            c->R[s + 1][0] = r1;
+        }
+    }
+    for (; s < count; s++) {
         for (i = 0; i < m; i++) {
-            const mkc_real *x = mkc__row(c, s, i, buf);
+            const mkc_real *x = row_at(c, s, i, buf);
             mkc_real r = target(c, s, i);
             for (j = 0; j < n; j++)
-                r -= x[j] * c->theta[j];
+                r -= x[j] * th[j];
             c->R[s][i] = r;
         }
     }
@@ -293,7 +432,7 @@ static int initialise_window(mkc_core_t *c)
     for (s = 0; s < count; s++) {
         for (i = 0; i < m; i++) {
             mkc_real wd = c->d[i] > RC(0.0) ? RC(1.0) * (RC(1.0) / (c->d[i] * c->d[i])) : RC(1.0);
-            row_update(c->A, c->b, mkc__row(c, s, i, buf), target(c, s, i), (mkc_acc)wd, n);
+            row_update(c->A, c->b, row_at(c, s, i, buf), target(c, s, i), (mkc_acc)wd, n);
         }
     }
     st = solve_window(c, &cond);
@@ -307,7 +446,7 @@ static int initialise_window(mkc_core_t *c)
         if (!(c->d[i] > RC(0.0))) {
             mkc_acc acc = AC(0.0);
             for (s = 0; s < count; s++) {
-                const mkc_real *x = mkc__row(c, s, i, buf);
+                const mkc_real *x = row_at(c, s, i, buf);
                 mkc_real r = target(c, s, i);
                 for (j = 0; j < n; j++)
                     r -= x[j] * c->theta[j];
@@ -354,19 +493,32 @@ int mkc__cold_start(mkc_core_t *c, int rounds)
 int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int slot)
 {
     int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M), W = ICFG(c, MKC_I_W);
-    int i, j, ready, st;
+    int i, j, ready, st, pend = 0;
     mkc_acc cond;
-    mkc_real buf[MKC_N];
+    mkc_real buf[MKC_N], old_x[MKC_N], oy = RC(0.0);
+    mkc_acc oc = AC(0.0);
     if (slot < 0) {
         slot = (int)c->cnt[MKC_C_HEAD];
         c->cnt[MKC_C_HEAD] = (slot + 1) % W;
     }
     c->cnt[MKC_C_LAST_SLOT] = slot;
     if (slot < c->cnt[MKC_C_COUNT]) {
-        /* replace: subtract exactly what this slot added */
-        for (i = 0; i < m; i++)
-            if (c->C[slot][i] != RC(0.0))
-                row_update(c->A, c->b, mkc__row(c, slot, i, buf), target(c, slot, i), -(mkc_acc)c->C[slot][i], n);
+        /* replace: subtract exactly what this slot added. One channel (m = 1): keep the old row
+         * (store_row overwrites it) and subtract it in the same pass over A, b as the new row's
+         * addition below (row_update2: each element still receives "- old, + new" in that order). */
+        if (m == 1 && c->C[slot][0] != RC(0.0)) {
+            const mkc_real *xo = row_at(c, slot, 0, buf);
+            for (j = 0; j < n; j++)
+                old_x[j] = xo[j];
+            oy = target(c, slot, 0);
+            oc = -(mkc_acc)c->C[slot][0];
+            pend = 1;
+        } else {
+            for (i = 0; i < m; i++)
+                if (c->C[slot][i] != RC(0.0))
+                    row_update(c->A, c->b, row_at(c, slot, i, buf), target(c, slot, i), -(mkc_acc)c->C[slot][i],
+                               n);
+        }
     } else {
         c->cnt[MKC_C_COUNT] += 1;
     }
@@ -376,12 +528,20 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
         mkc_real r = yk[i], cc;
         for (j = 0; j < n; j++)
             r -= xk[i * n + j] * c->theta[j];
-        cc = ready ? exp(-r * r * weight_exponent_scale(c->sigma[i], c->d[i])) * (RC(1.0) / (c->d[i] * c->d[i]))
+        cc = ready ? gauss_weight(r * r * weight_exponent_scale(c->sigma[i], c->d[i])) * (RC(1.0) / (c->d[i] * c->d[i]))
                    : RC(0.0);
         c->C[slot][i] = cc;
-        if (cc != RC(0.0))
-            row_update(c->A, c->b, xk + i * n, yk[i], (mkc_acc)cc, n);
+        if (cc != RC(0.0)) {
+            if (pend) {
+                row_update2(c->A, c->b, old_x, oy, oc, xk, yk[0], (mkc_acc)cc, n);
+                pend = 0;
+            } else {
+                row_update(c->A, c->b, xk + i * n, yk[i], (mkc_acc)cc, n);
+            }
+        }
     }
+    if (pend)
+        row_update(c->A, c->b, old_x, oy, oc, n);
     c->cnt[MKC_C_SEEN] += 1;
     c->cnt[MKC_C_SINCE] += 1;
     if (c->cnt[MKC_C_COUNT] < ICFG(c, MKC_I_MIN_SAMPLES)) {

@@ -24,7 +24,7 @@ from .._numba import kernel
 from . import OK, NOT_CONVERGED, SINGULAR
 from .estep import estep_channel
 from .linalg import spd_solve
-from .correntropy import weight_exponent_scale
+from .correntropy import gauss_weight, weight_exponent_scale
 
 # status codes specific to the stream (continuing the kernel numbering)
 WARMING_UP = 5     # fewer than min_samples in the window: theta not solved yet
@@ -97,11 +97,14 @@ def refine_theta(A, b, theta, L, D, xs, n):
         for k in range(p):
             s -= L[p, k] * xs[k]
         xs[p] = s * L[p, p]
-    for i in range(n - 1, -1, -1):
-        s = xs[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * xs[k]
-        xs[i] = s * L[i, i]
+    # backward solve L^T y = z column by column: y_k is final once scaled, then leaves the rows
+    # above (each xs[i] subtracts L[k, i] y_k in descending k). The n updates of one column are
+    # independent, so the critical path is n multiply-subtracts, not the n(n-1)/2 of a row-wise dot.
+    for k in range(n - 1, -1, -1):
+        yk = xs[k] * L[k, k]
+        xs[k] = yk
+        for i in range(k):
+            xs[i] -= L[k, i] * yk
     step = 0.0
     size = 0.0
     for j in range(n):
@@ -148,7 +151,7 @@ def rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cn
                     r = Y[s, i]
                     for j in range(n):
                         r -= X[s, i, j] * theta[j]
-                w = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i]))
+                w = gauss_weight(r * r * weight_exponent_scale(sigma[i], d[i]))   # exp(-r^2 / (2 d^2 sigma^2))
                 wsum += w
                 c = w * (1.0 / (d[i] * d[i]))
                 C[s, i] = c
@@ -310,7 +313,7 @@ def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tpre
         for j in range(n):
             X[slot, i, j] = xk[i, j]
             r -= xk[i, j] * theta[j]
-        c = math.exp(-r * r * weight_exponent_scale(sigma[i], d[i])) * (1.0 / (d[i] * d[i])) if ready else 0.0
+        c = gauss_weight(r * r * weight_exponent_scale(sigma[i], d[i])) * (1.0 / (d[i] * d[i])) if ready else 0.0
         C[slot, i] = c
         if c != 0.0:
             row_update(A, b, xk[i], yk[i], c, n)
