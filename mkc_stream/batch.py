@@ -14,11 +14,17 @@ from .kernels.em import mkc_em
 from .kernels.mstep import mstep_fixed_point
 
 #: Bounds of the E-step search: the range over which the normaliser is verified against the
-#: 40-digit reference (sigma in [0.05, 1000]); d in [1e-6 a, a] with a the truncation bound.
+#: 40-digit reference (sigma in [0.05, 1000]); d in [1e-9 a, a] with a the truncation bound.
+#: a spans the largest residual, so one spike at 100x the field (a saturated or glitched read: the
+#: quadratic features put it at ~1e4 residual units) makes a ~1e5 times the inliers' d; with a
+#: 1e-6 floor d was clamped there and every weight went flat (1.4 uT error at 3% of 5000 uT
+#: spikes, 0.02 uT with 1e-9). Large a/d costs the normaliser nothing: its floor term is exact.
 DEFAULT_SIGMA_BOUNDS = (0.05, 1000.0)
-DEFAULT_D_BOUNDS = (1e-6, 1.0)
+DEFAULT_D_BOUNDS = (1e-9, 1.0)
 #: The paper's EM start (Example 1 and 2): a wide kernel, i.e. start close to WLS.
 DEFAULT_SIGMA_START = 20.0
+#: EM's start bandwidth from a given (high-breakdown) theta0: weights halve at ~2.4 d.
+START_SIGMA_ROBUST = 2.0     # = kernels.window.START_SIGMA_ROBUST (the stream's restart_at)
 #: Truncation bound a = A_FACTOR * max|e| (the paper leaves a free). With a = max|e| exactly, the
 #: uniform-tail explanation costs nothing at the sample maximum and Gaussian data get fitted with a
 #: heavy tail (Example 2 case 1: +4% error vs WLS); a 1.5x margin removes that and keeps the
@@ -115,6 +121,13 @@ class MKCRegressor(LinearModelMixin):
     max_iter, tol : fixed-point cap and threshold psi of Algorithm 1.
     sigma_bounds : (lo, hi) box of the E-step for sigma.
     d_bounds : (lo, hi) box for d as fractions of the truncation bound a.
+    theta0 : array (n,), optional
+        Start Algorithm 3 here instead of at the WLS solution (the paper's start). A correntropy
+        fit, like any redescending M-estimator, cannot undo a start that gross high-leverage
+        outliers have already dragged away; a high-breakdown start (MM-estimation's recipe) fixes
+        that. d then defaults to the robust scale of the residuals at theta0, and sigma (em=True) to
+        START_SIGMA_ROBUST: the first M-step must keep the start's robustness, where the paper's
+        sigma = 20 (weights ~1 out to 20 d) suits its least-squares start.
     a : float, optional
         Truncation bound of the pdf's domain [-a, a] (same units as Y). None: a_factor times the
         largest absolute residual of the channel, re-evaluated at every E-step.
@@ -129,8 +142,9 @@ class MKCRegressor(LinearModelMixin):
 
     def __init__(self, em=True, sigma=None, d=None, *, max_em_iter=10, em_tol=1e-6, max_iter=200, tol=1e-9,
                  sigma_bounds=DEFAULT_SIGMA_BOUNDS, d_bounds=DEFAULT_D_BOUNDS, a=None, a_factor=DEFAULT_A_FACTOR,
-                 estep_max_iter=100, estep_gtol=1e-9):
+                 estep_max_iter=100, estep_gtol=1e-9, theta0=None):
         self.em = em
+        self.theta0 = theta0
         self.sigma = sigma
         self.d = d
         self.max_em_iter = max_em_iter
@@ -144,17 +158,27 @@ class MKCRegressor(LinearModelMixin):
         self.estep_max_iter = estep_max_iter
         self.estep_gtol = estep_gtol
 
+    def _start(self, n):
+        if self.theta0 is None:
+            return None
+        theta = np.array(self.theta0, dtype=np.float64).ravel()
+        if theta.shape != (n,) or not np.isfinite(theta).all():
+            raise MKCInputError(f"theta0 must be {n} finite numbers; got {np.asarray(self.theta0).shape}")
+        return theta
+
     def _initial_params(self, X3, Y2):
         N, m, n = X3.shape
         if self.sigma is None:
             if not self.em:
                 raise MKCInputError("MKCRegressor(em=False) needs a kernel bandwidth: pass sigma=...")
-            sigma = np.full(m, DEFAULT_SIGMA_START)
+            sigma = np.full(m, DEFAULT_SIGMA_START if self.theta0 is None else START_SIGMA_ROBUST)
         else:
             sigma = per_channel(self.sigma, m, "sigma")
         if self.d is None:
-            theta_ls, _ = wls_solve(X3, Y2, np.ones(m))
-            R = Y2 - np.einsum("kmn,n->km", X3, theta_ls)
+            start = self._start(n)
+            if start is None:
+                start, _ = wls_solve(X3, Y2, np.ones(m))
+            R = Y2 - np.einsum("kmn,n->km", X3, start)
             d = robust_scale(R)
         else:
             d = per_channel(self.d, m, "d")
@@ -172,9 +196,11 @@ class MKCRegressor(LinearModelMixin):
         if self.a is not None and not fixed_a > 0:
             raise MKCInputError(f"a must be > 0, got {self.a}")
         sigma, d = self._initial_params(X3, Y2)
-        theta, status = wls_solve(X3, Y2, d)
-        if status != OK:
-            raise MKCInputError(f"initial WLS solve failed: {STATUS_TEXT[status]}")
+        theta = self._start(n)
+        if theta is None:
+            theta, status = wls_solve(X3, Y2, d)
+            if status != OK:
+                raise MKCInputError(f"initial WLS solve failed: {STATUS_TEXT[status]}")
         em_iter = int(self.max_em_iter) if self.em else 0
         ws = _Workspace(N, m, n, em_iter)
         if self.em:

@@ -818,7 +818,8 @@ def vector_input(source: dict) -> dict:
     if kind == "synthetic":
         from .calib.synthetic import synthetic_mag
 
-        s = synthetic_mag(seed=source["seed"], N=source["N"], burst_fraction=source["burst"])
+        s = synthetic_mag(seed=source["seed"], N=source["N"], burst_fraction=source["burst"],
+                          spike_fraction=source.get("spikes", 0.0), spike_magnitude=source.get("spike_uT", 1000.0))
         mags = s.raw.copy()
         for col, every, offset in source.get("nan", []):
             mags[offset::every, col] = np.nan

@@ -33,7 +33,7 @@ class StreamConfig:
     min_samples: int = 0          # samples before the first solve (0: max(2n, n + 8) equations' worth)
     sigma_lo: float = 0.05
     sigma_hi: float = 1000.0
-    d_lo: float = 1e-6            # d bounds as fractions of the truncation bound a
+    d_lo: float = 1e-9            # d bounds as fractions of the truncation bound a (batch.DEFAULT_D_BOUNDS)
     d_hi: float = 1.0
     a_factor: float = 1.5
     a: float = -1.0               # fixed truncation bound (> 0), or -1 for a_factor * max|e|

@@ -75,6 +75,7 @@ def render() -> str:
     p("")
     p("/* kernel thresholds */")
     p(f"#define MKC_REFINE_MAX_STEP {_hex(K.REFINE_MAX_STEP)} /* {K.REFINE_MAX_STEP!r} */")
+    p(f"#define MKC_START_SIGMA_ROBUST {_hex(K.START_SIGMA_ROBUST)} /* {K.START_SIGMA_ROBUST!r}: restart_at */")
     p(f"#define MKC_TAU {_hex(NZ.TAU)} /* {NZ.TAU!r} */")
     p(f"#define MKC_FAR_GTOL {_hex(ES.FAR_GTOL)} /* {ES.FAR_GTOL!r}: kernels/estep.py */")
     p(f"#define MKC_FAR_EXTRA_ITER {ES.FAR_EXTRA_ITER}")

@@ -47,6 +47,9 @@ VECTORS = [
     ("syn_s4_b10_w128_k16", MAG, {"kind": "synthetic", "seed": 4, "N": 4000, "burst": 0.10},
      {"window": 128, "estep_every": 16}, True),
     ("syn_s5_b25_fifo", MAG, {"kind": "synthetic", "seed": 5, "N": 2500, "burst": 0.25}, {"policy": "fifo"}, True),
+    # gross isolated spikes (3% at ~1000 uT): the high-breakdown restarts (restart_at, cold_start_at)
+    ("syn_s7_b10_spikes", MAG, {"kind": "synthetic", "seed": 7, "N": 3000, "burst": 0.10, "spikes": 0.03,
+                                "spike_uT": 1000.0}, {}, True),
     # NaN samples reach the calibrator only in-process (a recording file's reader drops such rows)
     ("syn_s6_b10_nan", MAG, {"kind": "synthetic", "seed": 6, "N": 3000, "burst": 0.10,
                              "nan": [[1, 97, 5], [0, 251, 11]]}, {}, False),

@@ -75,7 +75,11 @@ static void set_normalisation(mkc_mag_t *g, const mkc_real *c0, mkc_real s0, con
     g->s0 = s0;
     mkc__recount_cells(g, count);
     if (restart) {
-        mkc__restart(&g->core);
+        /* (c0, s0) is the window's trimmed sphere fit: start from that sphere, the unit sphere here */
+        static const double origin[3] = {0.0, 0.0, 0.0};
+        mkc_real unit[9];
+        mkc__sphere_theta(origin, 1.0, unit);
+        mkc__restart_at(&g->core, unit);
         mkc__estep_window(&g->core);
         mkc__rebuild(&g->core);
     } else {
@@ -178,11 +182,22 @@ static double cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b
     unsigned char *state = (unsigned char *)(void *)&g->core + offsetof(mkc_core_t, C);
     mkc__geometry geom;
     mkc_mag_reason unused;
-    double bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF;
-    int j, k;
+    double bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF, sc[3];
+    mkc_real sb[3], sF = RC(0.0), theta0[9];
+    int j, k, have_sphere = 0;
     *have_cold = 0;
     copy_bytes(g->saved, state, MKC_CORE_SAVED_BYTES);
-    mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
+    /* from the window's own trimmed sphere (a high-breakdown start, independent of the warm trial);
+     * from WLS only when the window gives no sphere around the features' origin */
+    if (count >= 8 && mkc__robust_sphere_fit(g, count, sb, &sF)) {
+        for (j = 0; j < 3; j++)
+            sc[j] = (double)((sb[j] - g->c0[j]) / g->s0);
+        have_sphere = mkc__sphere_theta(sc, (double)(sF / g->s0), theta0);
+    }
+    if (have_sphere)
+        mkc__cold_start_at(&g->core, MKC_COLD_START_ROUNDS, theta0);
+    else
+        mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
     if (mkc__geometry_from_theta(g->core.theta, &geom, &unused) != MKC_REASON_NONE)
         return HUGE_VAL;
     mkc__raw_geometry(&geom, g->c0, g->s0);

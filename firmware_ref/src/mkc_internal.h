@@ -97,6 +97,8 @@ int mkc__rebuild(mkc_core_t *c);
 void mkc__estep_window(mkc_core_t *c);
 int mkc__restart(mkc_core_t *c);
 int mkc__cold_start(mkc_core_t *c, int rounds);
+int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0);
+int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0);
 
 /* ---- magwindow.c (kernels/magwindow.py) ---- */
 int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz);
@@ -114,6 +116,7 @@ int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz);
 
 /* ---- sphere.c (calib/ellipsoid.py sphere_fit, robust_sphere_fit) ---- */
 int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F);
+int mkc__sphere_theta(const double *c, double r, mkc_real *theta);
 mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real *b);
 
 /* ---- ellipsoid.c (calib/ellipsoid.py geometry_from_theta, raw_geometry, calibration_from_geometry) ---- */

@@ -55,6 +55,7 @@
 
 /* kernel thresholds */
 #define MKC_REFINE_MAX_STEP 0x1.0000000000000p-2 /* 0.25 */
+#define MKC_START_SIGMA_ROBUST 0x1.0000000000000p+1 /* 2.0: restart_at */
 #define MKC_TAU 0x1.2e3b40a0e9b4fp-70 /* 1e-21 */
 #define MKC_FAR_GTOL 0x1.47ae147ae147bp-7 /* 0.01: kernels/estep.py */
 #define MKC_FAR_EXTRA_ITER 9
@@ -101,7 +102,7 @@ static const double mkc_gl_weights[MKC_GL_ORDER] = {
 #define MKC_DEF_MIN_SAMPLES 0
 #define MKC_DEF_SIGMA_LO 0x1.999999999999ap-5 /* 0.05 */
 #define MKC_DEF_SIGMA_HI 0x1.f400000000000p+9 /* 1000.0 */
-#define MKC_DEF_D_LO 0x1.0c6f7a0b5ed8dp-20 /* 1e-06 */
+#define MKC_DEF_D_LO 0x1.12e0be826d695p-30 /* 1e-09 */
 #define MKC_DEF_D_HI 0x1.0000000000000p+0 /* 1.0 */
 #define MKC_DEF_A_FACTOR 0x1.8000000000000p+0 /* 1.5 */
 #define MKC_DEF_A -0x1.0000000000000p+0 /* -1.0 */

@@ -132,13 +132,34 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
 }
 
 /* sphere_fit, then refit without the samples whose |m - b| - F exceeds 3 robust scales (bursts),
- * twice at most. */
+ * twice at most. The first fit already leaves out the samples whose distance to the coordinate-wise
+ * median is more than 3 robust scales from the median distance (gross spikes). */
 int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F)
 {
-    sel all = {0, RC(0.0), RC(0.0)};
-    int pass, k;
+    sel all = {0, RC(0.0), RC(0.0)}, first;
+    int pass, k, j, nfirst = 0;
     mkc_real *r = g->core.ebuf, *tmp = &g->core.R[0][0];
-    if (!sphere_fit(g, count, &all, b, F))
+    mkc_real cm[3], rmed, rmad;
+    for (j = 0; j < 3; j++) {
+        for (k = 0; k < count; k++)
+            tmp[k] = g->raw[k][j];
+        cm[j] = mkc__median(tmp, count);
+    }
+    for (k = 0; k < count; k++) {
+        mkc_real d0 = g->raw[k][0] - cm[0], d1 = g->raw[k][1] - cm[1], d2 = g->raw[k][2] - cm[2];
+        r[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+        tmp[k] = r[k];
+    }
+    rmed = mkc__median(tmp, count);
+    for (k = 0; k < count; k++)
+        tmp[k] = fabs(r[k] - rmed);
+    rmad = RC(1.4826) * mkc__median(tmp, count);
+    first.use_mask = rmad > RC(0.0);
+    first.med = rmed;
+    first.thr = RC(3.0) * rmad;
+    for (k = 0; k < count; k++)
+        nfirst += selected(g, &first, k);
+    if (!sphere_fit(g, count, (first.use_mask && nfirst >= 8) ? &first : &all, b, F))
         return 0;
     for (pass = 0; pass < 2; pass++) {
         mkc_real med, mad;
@@ -179,4 +200,21 @@ mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real 
             hit[mkc__unit_direction_cell(v0 / nrm, v1 / nrm, v2 / nrm)] = 1;
     }
     return mkc__coverage_of_unit_cells(hit, MKC_N_CELLS);
+}
+
+/* calib/ellipsoid.py sphere_theta: theta of eq. (36)-(37) for the sphere |m' - c| = r in the
+ * features' coordinates, |m'|^2 - 2 c^T m' = k divided by k = r^2 - |c|^2; 0 when k <= 0. */
+int mkc__sphere_theta(const double *c, double r, mkc_real *theta)
+{
+    double k = r * r - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+    if (!(isfinite(k) && k > 0.0))
+        return 0;
+    theta[0] = (mkc_real)(1.0 / k);
+    theta[1] = (mkc_real)(1.0 / k);
+    theta[2] = (mkc_real)(1.0 / k);
+    theta[3] = theta[4] = theta[5] = RC(0.0);
+    theta[6] = (mkc_real)(-2.0 * c[0] / k);
+    theta[7] = (mkc_real)(-2.0 * c[1] / k);
+    theta[8] = (mkc_real)(-2.0 * c[2] / k);
+    return 1;
 }

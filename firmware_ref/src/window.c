@@ -473,6 +473,55 @@ int mkc__restart(mkc_core_t *c)
     return initialise_window(c);
 }
 
+/* restart() from a given (high-breakdown) theta0 instead of WLS, as MM-estimation starts: sigma at
+ * MKC_START_SIGMA_ROBUST, d at 1.4826 MAD of the residuals at theta0 (their RMS if the MAD is 0),
+ * so the first M-step keeps the start's robustness. Scratch: c->ebuf. */
+int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
+{
+    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
+    int count = (int)c->cnt[MKC_C_COUNT];
+    int i, j, s;
+    mkc_real buf[MKC_N];
+    c->cnt[MKC_C_RESTARTS] += 1;
+    for (j = 0; j < n; j++)
+        c->theta[j] = theta0[j];
+    for (i = 0; i < m; i++) {
+        mkc_acc acc = AC(0.0);
+        mkc_real med, mad;
+        c->sigma[i] = RC(MKC_START_SIGMA_ROBUST);
+        c->Hes[i][0] = EC(0.0);
+        c->Hes[i][1] = EC(0.0);
+        c->Hes[i][2] = EC(0.0);
+        for (s = 0; s < count; s++) {
+            const mkc_real *x = row_at(c, s, i, buf);
+            mkc_real r = target(c, s, i);
+            for (j = 0; j < n; j++)
+                r -= x[j] * c->theta[j];
+            c->ebuf[s] = r;
+            acc += (mkc_acc)r * (mkc_acc)r;
+        }
+        med = mkc__median(c->ebuf, count);
+        for (s = 0; s < count; s++)
+            c->ebuf[s] = (mkc_real)fabs(c->ebuf[s] - med);
+        mad = RC(1.4826) * mkc__median(c->ebuf, count);
+        c->d[i] = (mkc_real)mkc__max_a(mad > RC(0.0) ? (mkc_acc)mad : sqrt(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
+    }
+    return mkc__rebuild(c);
+}
+
+/* mkc__cold_start from mkc__restart_at(theta0) instead of WLS. */
+int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0)
+{
+    int st = mkc__restart_at(c, theta0), r;
+    for (r = 0; r < rounds; r++) {
+        if (st != MKC_OK && st != MKC_NOT_CONVERGED)
+            return st;
+        mkc__estep_window(c);
+        st = rebuild_with(c, 1);
+    }
+    return st;
+}
+
 /* Batch MKC-EM (Algorithm 3) on the window from scratch: restart() (WLS, then Algorithm 1 at the
  * start bandwidth), then `rounds` E-step + fixed-point rounds. Returns the last status. */
 int mkc__cold_start(mkc_core_t *c, int rounds)

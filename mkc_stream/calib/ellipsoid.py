@@ -140,8 +140,18 @@ def sphere_fit(mag: np.ndarray):
 
 
 def robust_sphere_fit(mag: np.ndarray, passes: int = 2, k: float = 3.0):
-    """sphere_fit, then refit without samples whose |m - b| - F exceeds k robust scales (bursts)."""
-    fit = sphere_fit(mag)
+    """sphere_fit, then refit without samples whose |m - b| - F exceeds k robust scales (bursts).
+
+    The first fit already leaves out samples whose distance to the coordinate-wise median is more
+    than k robust scales from the median distance: one spike at 20x the field drags a plain
+    least-squares sphere so far that the trimming passes would keep the spikes and cut the sphere.
+    """
+    c = np.median(mag, axis=0)
+    rad = np.linalg.norm(mag - c, axis=1)
+    med = np.median(rad)
+    mad = 1.4826 * np.median(np.abs(rad - med))
+    first = np.abs(rad - med) <= k * mad if mad > 0 else None
+    fit = sphere_fit(mag[first]) if first is not None and first.sum() >= 8 else sphere_fit(mag)
     for _ in range(passes):
         if fit is None:
             return None
@@ -152,6 +162,20 @@ def robust_sphere_fit(mag: np.ndarray, passes: int = 2, k: float = 3.0):
             return fit
         fit = sphere_fit(mag[keep])
     return fit
+
+
+def sphere_theta(centre, radius):
+    """theta of eq. (36)-(37) for the sphere |m - centre| = radius (in the features' coordinates).
+
+    |m|^2 - 2 centre^T m = k with k = radius^2 - |centre|^2, divided by k so the target is 1; None
+    when k <= 0 (the origin is not inside the sphere, so the "= 1" form cannot describe it).
+    """
+    c = [float(v) for v in centre]
+    r = float(radius)
+    k = r * r - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2])     # spelt out: the C port's order
+    if not (np.isfinite(k) and k > 0):
+        return None
+    return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -2.0 * c[0], -2.0 * c[1], -2.0 * c[2]]) / k
 
 
 @dataclass

@@ -18,9 +18,13 @@ from ..kernels import window as K
 from ..stream import StreamingMKC
 from .acceptance import AcceptanceRules, check
 from .ellipsoid import (EllipsoidError, Normalisation, calibration_from_geometry, geometry_from_theta,
-                        raw_geometry, robust_sphere_fit)
+                        raw_geometry, robust_sphere_fit, sphere_theta)
 from .fit import weighted_condition
 from .quality import quality_figures, sphere_coverage
+
+#: theta of the unit sphere (eq. (36)-(37)): the restart's start once the features are centred and
+#: scaled by the window's sphere fit
+UNIT_SPHERE_THETA = sphere_theta((0.0, 0.0, 0.0), 1.0)
 
 POLICIES = {"fifo": 0, "direction": 1}
 
@@ -241,7 +245,14 @@ class MagCalibrator:
         """
         st = self.stream._st
         saved = {k: v.copy() for k, v in st.items()}
-        K.cold_start(*self.stream._args, self.COLD_START_ROUNDS)
+        # from the window's own trimmed sphere (a high-breakdown start, independent of the warm
+        # trial); from WLS only when the window gives no sphere around the features' origin
+        fit = robust_sphere_fit(raw) if raw.shape[0] >= 8 else None
+        theta0 = None if fit is None else sphere_theta((fit[0] - self.c0) / self.s0, fit[1] / self.s0)
+        if theta0 is None:
+            K.cold_start(*self.stream._args, self.COLD_START_ROUNDS)
+        else:
+            K.cold_start_at(*self.stream._args, self.COLD_START_ROUNDS, theta0)
         try:
             geom = raw_geometry(geometry_from_theta(st["theta"]), Normalisation(self.c0.copy(), self.s0))
             bc, Sc, Fc = calibration_from_geometry(geom)
@@ -282,7 +293,9 @@ class MagCalibrator:
         MW.recount_cells(self.raw, count, self.c0, self.slot_cell, self.cell_count)
         args = (st["icfg"], st["fcfg"], st["X"], st["Y"], st["C"], st["A"], st["b"], st["theta"], st["sigma"], st["d"])
         if restart:
-            K.restart(*args, st["Hes"], st["L"], st["D"], st["xs"], st["tprev"], st["cnt"], st["fst"])
+            # (c0, s0) is the window's trimmed sphere fit: start from that sphere, the unit sphere here
+            K.restart_at(*args, st["Hes"], st["L"], st["D"], st["xs"], st["tprev"], st["ebuf"], st["cnt"], st["fst"],
+                         UNIT_SPHERE_THETA)
             K.estep_window(st["icfg"], st["fcfg"], st["X"], st["Y"], st["theta"], st["sigma"], st["d"], st["a"],
                            st["Hes"], st["R"], st["ebuf"], st["cnt"], st["fst"])
             K.rebuild(*args, st["L"], st["D"], st["xs"], st["tprev"], st["cnt"], st["fst"])

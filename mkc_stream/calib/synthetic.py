@@ -19,7 +19,7 @@ class SyntheticMag:
     hard_iron: np.ndarray      # true b
     soft_iron: np.ndarray      # true S (symmetric PD, det 1)
     field: float               # true F
-    disturbed: np.ndarray      # (N,) bool, True inside a burst
+    disturbed: np.ndarray      # (N,) bool, True inside a burst or at a spike
     directions: np.ndarray     # (N, 3) true unit field directions in the sensor frame
 
 
@@ -67,8 +67,15 @@ def burst_mask_and_offsets(rng, N, fraction, length=(20, 60), magnitude=(5.0, 40
 
 
 def synthetic_mag(seed=0, N=2000, field=50.0, noise=0.3, burst_fraction=0.1, burst_length=(20, 60),
-                  burst_magnitude=(5.0, 40.0), hard_iron_scale=30.0, soft_spread=0.25, rate_hz=50.0):
-    """A synthetic raw magnetometer recording with known truth (units: uT unless scaled)."""
+                  burst_magnitude=(5.0, 40.0), hard_iron_scale=30.0, soft_spread=0.25, rate_hz=50.0,
+                  spike_fraction=0.0, spike_magnitude=1000.0):
+    """A synthetic raw magnetometer recording with known truth (units: uT unless scaled).
+
+    Bursts are slow disturbances (a motor, a phone); spikes are isolated gross readings (a glitched
+    bus transfer, a saturated axis): each sample is one with probability spike_fraction and gets a
+    N(0, spike_magnitude^2) offset per axis. Spikes come from their own generator, so a recording
+    without them is the same as before they existed; `disturbed` marks bursts and spikes.
+    """
     rng = np.random.default_rng(seed)
     b = rng.uniform(-hard_iron_scale, hard_iron_scale, 3)
     S = random_soft_iron(rng, soft_spread)
@@ -76,5 +83,10 @@ def synthetic_mag(seed=0, N=2000, field=50.0, noise=0.3, burst_fraction=0.1, bur
     clean = (field * u) @ np.linalg.inv(S).T + b
     mask, offs = burst_mask_and_offsets(rng, N, burst_fraction, burst_length, burst_magnitude)
     raw = clean + offs + noise * rng.normal(size=(N, 3))
+    if spike_fraction > 0:
+        srng = np.random.default_rng([seed, 1])
+        spikes = srng.random(N) < spike_fraction
+        raw[spikes] += srng.normal(0.0, spike_magnitude, (int(spikes.sum()), 3))
+        mask = mask | spikes
     t = np.arange(N) / rate_hz
     return SyntheticMag(t=t, raw=raw, hard_iron=b, soft_iron=S, field=field, disturbed=mask, directions=u)

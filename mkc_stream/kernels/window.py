@@ -43,6 +43,7 @@ N_COUNTERS = 13
 # C_FACTOR_AGE: samples since L, D were factored from A (-1: no valid factor)
 # C_FACTORS: factorisations done (checkpoints, refreshes and fall-backs)
 REFINE_MAX_STEP = 0.25   # a tracking step larger than this share of |theta| means: refactor
+START_SIGMA_ROBUST = 2.0  # restart_at's start bandwidth (batch.START_SIGMA_ROBUST): weights halve at ~2.4 d
 
 # fst: float64 state scalars
 S_COND, S_LAST_F = range(2)
@@ -263,6 +264,62 @@ def restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cn
         Hes[i, 1] = 0.0
         Hes[i, 2] = 0.0
     return initialise_window(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+
+
+@kernel
+def _sorted_median(e, n):
+    """Median of e[:n], sorting e[:n] in place (the mean of the middle two for even n, as numpy)."""
+    e[:n].sort()
+    if n % 2 == 1:
+        return e[n // 2]
+    return (e[n // 2 - 1] + e[n // 2]) / 2.0
+
+
+@kernel
+def restart_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, ebuf, cnt, fst, theta0):
+    """restart() from a given (high-breakdown) theta0 instead of WLS, as MM-estimation starts.
+
+    sigma starts at START_SIGMA_ROBUST and d at 1.4826 MAD of the residuals at theta0 (their RMS if
+    the MAD is 0), so the first M-step keeps the start's robustness: from WLS, gross high-leverage
+    outliers have already moved theta beyond what any kernel can undo.
+    """
+    n = icfg[I_N]
+    m = icfg[I_M]
+    count = cnt[C_COUNT]
+    cnt[C_RESTARTS] += 1
+    for j in range(n):
+        theta[j] = theta0[j]
+    for i in range(m):
+        sigma[i] = START_SIGMA_ROBUST
+        Hes[i, 0] = 0.0
+        Hes[i, 1] = 0.0
+        Hes[i, 2] = 0.0
+        acc = 0.0
+        for s in range(count):
+            r = Y[s, i]
+            for j in range(n):
+                r -= X[s, i, j] * theta[j]
+            ebuf[s] = r
+            acc += r * r
+        med = _sorted_median(ebuf, count)
+        for s in range(count):
+            ebuf[s] = abs(ebuf[s] - med)
+        mad = 1.4826 * _sorted_median(ebuf, count)
+        d[i] = max(mad if mad > 0.0 else math.sqrt(acc / count), 1e-300)
+    return rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
+
+
+@kernel
+def cold_start_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, rounds,
+                  theta0):
+    """cold_start() from restart_at(theta0) (a high-breakdown start) instead of WLS."""
+    st = restart_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, ebuf, cnt, fst, theta0)
+    for _ in range(rounds):
+        if st != OK and st != NOT_CONVERGED:
+            return st
+        estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
+        st = rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, True)
+    return st
 
 
 @kernel
