@@ -118,3 +118,33 @@ def test_real_recording_quantization_is_found():
     assert q.magnitude is not None and q.magnitude["unit"] == "counts"
     assert q.magnitude["value"] == pytest.approx(round(q.magnitude["value"]), abs=1e-6)
     assert any(w["family"] == "raw" for w in d.to_json()["where"]) or q.shrink > 0
+
+
+def test_physical_range_prior():
+    """A fit far outside the library's realistic range is no explanation (it is reported with
+    status "implausible" and never selected): e.g. a current-induced offset absorbed as
+    thousands of nT/degC of thermal offset."""
+    from mkc_stream.diagnose.forms import implausible, prior_bound
+
+    absurd = {"value": 4010.0, "unit": "nT/degC", "vector": [3000.0, 2000.0, 1800.0]}
+    fine = {"value": 40.0, "unit": "nT/degC", "vector": [30.0, 20.0, 18.0]}
+    assert implausible("temperature_offset", absurd) and not implausible("temperature_offset", fine)
+    assert prior_bound("temperature_offset", fine)[0] == pytest.approx(3 * 50 * np.sqrt(3))
+    assert prior_bound("current_hard_iron", {"value": 1.0, "unit": "counts/A"}) is None   # unknown unit
+
+
+def test_quartic_statistic_sees_scale_nonlinearity():
+    """The u_j^4 pattern a per-axis scale nonlinearity leaves in the field strength is orthogonal
+    to what an ellipsoid absorbs, and a cubic departure of 200 nT shows in it at many sigma."""
+    from mkc_stream.diagnose.panel import quartic_basis
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    Q = quartic_basis(u, u)
+    A = np.column_stack([np.ones(len(u)), u] + [u[:, i] * u[:, j] for i in range(3) for j in range(i, 3)])
+    assert np.abs(A.T @ Q).max() < 1e-6 * len(u)
+    beta = 0.2                                                     # uT departure per axis at the field
+    r = -beta * np.sum(u ** 4, axis=1) + 0.1 * rng.normal(size=len(u))   # norm residual, 0.1 uT noise
+    z = (Q.T @ r) / np.sqrt(np.sum(Q * Q, axis=0)) / 0.1
+    assert np.all(np.abs(z) > 10)

@@ -60,8 +60,11 @@ def test_blind_benchmark_full(full_score):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): named first 87.5%, pair coverage 86% "
-                                       "measured against 90%; strict, so it fails loudly once they are met")
+@pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): with magnitudes over the issue's whole "
+                                       "realistic ranges, named first 87.7% of 65 trials an oracle could see, pair "
+                                       "coverage 64% (small temperature tempcos under a ramp not detected), best "
+                                       "wrong effect <= 0.3 in 42%, each measured against 90%; strict, so it fails "
+                                       "loudly once they are met")
 def test_blind_benchmark_unmet_lines(full_score):
     S = full_score
-    assert S["named_first"] >= 0.9 and S["pair_truth_in_set"] >= 0.9
+    assert S["named_first"] >= 0.9 and S["pair_truth_in_set"] >= 0.9 and S["best_wrong_le_0.3"] >= 0.9

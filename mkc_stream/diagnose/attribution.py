@@ -36,7 +36,7 @@ import numpy as np
 from ..sim.effects import EFFECTS
 from . import gap
 from .engine import CATCH_ALL, Candidate, Engine, Evaluation
-from .forms import FORMS, MeanForm
+from .forms import FORMS, MeanForm, implausible
 from .model import block_normals, bootstrap_theta
 
 MIN_STEP = 0.1
@@ -86,6 +86,7 @@ class Attribution:
         self.screen_R = min(screen_R, eng.R)
         self.log = log or (lambda s: None)
         self._boot_cache = {}
+        self.bad = {}               # effects whose fit in the last screen is outside the physical range
 
     # -- helpers ------------------------------------------------------------------------------
     def gap_R(self, ev: Evaluation, R):
@@ -121,8 +122,21 @@ class Attribution:
                 continue
             ev = self.eng.evaluate(cand, R=R)
             out[name] = (cand, ev, gap.shrink(g_ref, ev.G))
-            self.log(f"    {name:24s} gap {ev.G:8.3f}  shrink {out[name][2]:+.2f}")
+            why = implausible(name, self.term_magnitude(ev, name))
+            if why:
+                self.bad[name] = why
+            else:
+                self.bad.pop(name, None)
+            self.log(f"    {name:24s} gap {ev.G:8.3f}  shrink {out[name][2]:+.2f}{'  (implausible)' if why else ''}")
         return out
+
+    def term_magnitude(self, ev, name):
+        """Magnitude of a mean effect as fitted in ev (None for estimated effects)."""
+        idx = [i for i, t in enumerate(ev.cand.terms) if t.name == name]
+        if not idx:
+            return None
+        t = ev.cand.terms[idx[0]]
+        return FORMS[name].magnitude(self.eng.env, t.design, ev.fit.theta[idx[0]])
 
     # -- selection ----------------------------------------------------------------------------
     def run(self, detected: bool):
@@ -136,6 +150,10 @@ class Attribution:
                 testable.append(name)
         self.log(f"  screening {len(testable)} testable effects ({self.screen_R} replicas each)")
         screened = self.screen(ev0, testable, self.screen_R)
+        first_bad = dict(self.bad)
+        for name, why in first_bad.items():
+            results[name].status = "implausible"
+            results[name].reason += "; " + why
         singles = {}
         for name in testable:
             cand, ev_s, s = screened[name]
@@ -175,7 +193,7 @@ class Attribution:
 
         for n in selected:
             results[n].selected, results[n].status = True, "selected"
-        ambiguous = self._ambiguity(selected, results, singles) if selected else []
+        ambiguous = self._ambiguity(selected, results, singles, first_bad) if selected else []
         for n in ambiguous:
             results[n].status = "ambiguous"
         if selected:
@@ -191,13 +209,16 @@ class Attribution:
         because it can mimic any slow deterministic effect by widening its replicas.
         """
         def ok(n):
-            return np.isfinite(scores.get(n, np.nan)) and scores[n] > 0
+            return np.isfinite(scores.get(n, np.nan)) and scores[n] > 0 and n not in self.bad
 
         self._round_ref = current
         det = sorted([n for n in remaining if n not in CATCH_ALL and ok(n)], key=lambda n: -scores[n])[:N_VERIFY]
         # a catch-all is an explanation of the gap, not a mop for what a wrong-form effect leaves:
         # it competes in the first round only
-        sto = sorted([n for n in remaining if n in CATCH_ALL and ok(n)], key=lambda n: -scores[n])[:1]
+        # both catch-alls are re-scored: a random walk and a slow coloured noise are the same
+        # process over a recording much shorter than the noise's correlation time, and the
+        # screen's few replicas cannot rank them (Occam decides below)
+        sto = sorted([n for n in remaining if n in CATCH_ALL and ok(n)], key=lambda n: -scores[n])
         sto = sto if rnd == 0 else []
         full = {}
         for n in det + sto:
@@ -215,7 +236,9 @@ class Attribution:
         stos = [n for n in full if n in CATCH_ALL
                 and (full[n].G <= self.thr or gap.shrink(current.G, full[n].G) >= CATCH_ALL_CLOSE)]
         best_det = dets[0] if dets else None
-        best_sto = min(stos, key=lambda n: full[n].G) if stos else None
+        best_sto = self._simplest_equivalent(stos, full)[0] if stos else None
+        if best_sto == "colored_noise" and "bias_random_walk" in stos and self._walk_like(full[best_sto]):
+            best_sto = "bias_random_walk"
         if best_det is None and best_sto is None:
             return None
         if best_det is None:
@@ -226,6 +249,14 @@ class Attribution:
             if s_sto >= s_det + STOCHASTIC_MARGIN and np.percentile(diff, 5) > 0:
                 return best_sto, full[best_sto]
         return best_det, full[best_det]
+
+    def _walk_like(self, ev):
+        """A coloured noise with no fast component and a correlation time longer than the
+        recording is a random walk over it: its increments grow linearly at every lag the
+        recording holds (the variogram of the blocks' apparent hard iron bends by less than
+        1 - e^-1 at the longest lag), so the one-parameter walk is the simpler equivalent."""
+        p = ev.cand.estimated.get("colored_noise", {})
+        return not p.get("sigma", 0.0) > 0 and p.get("tau2", 0.0) >= self.eng.frame.duration
 
     def _step(self, full, name):
         return gap.shrink(self._round_ref.G, full[name].G)
@@ -248,14 +279,15 @@ class Attribution:
         r.shrink, r.gap, r.evaluation, r.verified = gap.shrink(self.ev0.G, ev.G), ev.G, ev, True
         r.shrink_ci = self.shrink_ci(self.ev0, ev)
 
-    def _ambiguity(self, selected, results, singles):
-        """Effects the data cannot tell apart from the first selected one."""
+    def _ambiguity(self, selected, results, singles, bad=()):
+        """Effects the data cannot tell apart from the first selected one (a fit outside the
+        physical range is no alternative explanation)."""
         first = selected[0]
         ra = results[first]
         ev_a = ra.evaluation
         out = []
         for name, r in results.items():
-            if name == first or not r.testable or r.evaluation is None or name in selected:
+            if name == first or not r.testable or r.evaluation is None or name in selected or name in bad:
                 continue
             if FORMS[name].alias_of == first or FORMS[first].alias_of == name:
                 out.append(name)
@@ -350,7 +382,10 @@ def complexity(name, cand, env) -> float:
         term = next((t for t in cand.terms if t.name == name), None)
         n_opt = len(term.options) if term is not None and term.options else 1
         return form.k + np.log2(n_opt)
-    return float(len(cand.estimated.get(name, {})))
+    p = cand.estimated.get(name, {})
+    if name == "colored_noise":        # two parameters per Gauss-Markov component it actually has
+        return 2.0 * sum(1 for k in ("sigma", "sigma2") if p.get(k, 0.0) > 0)
+    return float(len(p))
 
 
 def verdict(detected, g0, g_final, selected, thr, first_shrink):

@@ -89,7 +89,9 @@ class Engine:
             ch = channels(frame.m, frame, base.fit.state)
             G = FORMS["misalignment"].G(self.env, {})(frame, frame.m, base.fit.state)
             rot = -np.einsum("nk,nkp->np", ch.J[:, 1], G) / base.sigma[1]
-        self.design = panel.make_design(frame, base.fit.v, base.sigma, extra, q, ph, tol, rot)
+        d_raw = frame.m - base.fit.state.b
+        u_raw = d_raw / np.maximum(np.linalg.norm(d_raw, axis=1, keepdims=True), 1e-12)
+        self.design = panel.make_design(frame, base.fit.v, base.sigma, extra, q, ph, tol, rot, u_raw=u_raw)
         self._norm_cache = {}
         self._clock_cache = {}
         self._design_cache = {}

@@ -100,6 +100,40 @@ class EstimatedForm:
 
 
 # ---------------------------------------------------------------------------------------------
+# physical-range priors
+# ---------------------------------------------------------------------------------------------
+
+#: A fitted deterministic effect whose size exceeds PRIOR_FACTOR times the top of the library's
+#: realistic range (for a vector: its per-component top times sqrt(components)) is not a
+#: physical explanation: a wrong form can close a gap by absorbing it with an absurd coefficient
+#: (e.g. a current-induced offset "explained" as 4000 nT/degC of thermal offset). Such a fit is
+#: reported but cannot be selected or counted as an alternative explanation.
+PRIOR_FACTOR = 3.0
+
+
+def prior_bound(name, magnitude):
+    """(bound, unit) of the plausible size of a mean effect's magnitude dict, or None when the
+    library gives no range in that unit (unknown recording unit, dimensionless settings)."""
+    if not magnitude or magnitude.get("value") is None:
+        return None
+    unit = magnitude.get("unit")
+    highs = [p.high for p in EFFECTS[name].params if p.unit == unit]
+    if not highs:
+        return None
+    k = len(magnitude["vector"]) if isinstance(magnitude.get("vector"), list) else 1
+    return PRIOR_FACTOR * max(highs) * np.sqrt(k), unit
+
+
+def implausible(name, magnitude):
+    """A text saying why a fitted magnitude is outside the physical range, or None."""
+    b = prior_bound(name, magnitude)
+    if b is None or not abs(float(magnitude["value"])) > b[0]:
+        return None
+    return (f"the fit needs {abs(float(magnitude['value'])):.3g} {b[1]}, beyond {PRIOR_FACTOR:g}x the realistic "
+            f"range (<= {b[0]:.3g} {b[1]}): not a physical explanation")
+
+
+# ---------------------------------------------------------------------------------------------
 # mean effects
 # ---------------------------------------------------------------------------------------------
 

@@ -15,6 +15,11 @@ samples again. Families (``where`` in the JSON):
   median one; von Neumann ratio): a step, a drift and a random walk differ here;
 * ``aux:NAME``: the same regression per quantile bin of each aux signal (and the turn rate);
 * ``frequency``: periodogram power in octave bands and the Allan variance at 1-32 samples;
+* ``quartic``: the norm residual's correlation with the fourth power of each raw axis's
+  direction cosine, u_j^4, after removing what any ellipsoid absorbs (degree <= 2 in the
+  calibrated direction): a per-axis scale nonlinearity (a cubic departure x_j^3 of each axis)
+  leaves this degree-4 pattern in the field strength, which no hard/soft iron can fit, while the
+  18 direction cells spread it thin;
 * ``weights``: where the fit down-weighted samples (overall, per block, per direction cell);
 * ``raw``: lattice strength of the raw values (quantization) and pile-up at the extremes (clipping);
 * ``timing``: timestamp jitter, lost and doubled samples.
@@ -76,13 +81,24 @@ class PanelDesign:
     unit: str = "uT"
     aux_units: dict = field(default_factory=dict)
     rot: np.ndarray | None = None   # (N, 3) dip change per small rotation of the field against gravity (per sigma)
+    quart: np.ndarray | None = None  # (N, 3) u_j^4 of the raw direction, orthogonal to degree <= 2 of v
 
     @property
     def C(self) -> int:
         return int(self.sigma.shape[0])
 
 
-def make_design(frame, v, sigma, extra_aux: dict, lattice_q, lattice_phase, pile_tol, rot=None) -> PanelDesign:
+def quartic_basis(u_raw, v):
+    """u_j^4 (raw-frame direction) minus its least-squares fit by 1, v and v v^T (what an
+    ellipsoid absorbs), each column scaled to unit RMS."""
+    Q = u_raw ** 4
+    A = np.column_stack([np.ones(v.shape[0]), v] + [v[:, i] * v[:, j] for i in range(3) for j in range(i, 3)])
+    Q = Q - A @ np.linalg.lstsq(A, Q, rcond=None)[0]
+    return Q / np.maximum(np.sqrt(np.mean(Q * Q, axis=0)), 1e-12)
+
+
+def make_design(frame, v, sigma, extra_aux: dict, lattice_q, lattice_phase, pile_tol, rot=None,
+                u_raw=None) -> PanelDesign:
     P = np.stack([np.ones(frame.n), v[:, 0], v[:, 1], v[:, 2], v[:, 0] ** 2 - 1 / 3, v[:, 1] ** 2 - 1 / 3], axis=1)
     PP = np.stack([P[:, i] * P[:, j] for i, j in _TRI], axis=1)
     bins, edges, centres = {}, {}, {}
@@ -102,7 +118,8 @@ def make_design(frame, v, sigma, extra_aux: dict, lattice_q, lattice_phase, pile
                        sigma=np.asarray(sigma, float),
                        dt0=frame.dt0, lattice_q=np.asarray(lattice_q, float),
                        lattice_phase=np.asarray(lattice_phase, float), pile_tol=np.asarray(pile_tol, float),
-                       block_edges_t=edges_t, block_t0=edges_t[:-1], unit=frame.unit, rot=rot)
+                       block_edges_t=edges_t, block_t0=edges_t[:-1], unit=frame.unit, rot=rot,
+                       quart=None if u_raw is None else quartic_basis(u_raw, v))
 
 
 def _bc(idx, w, size):
@@ -174,6 +191,9 @@ def block_stats(d: PanelDesign, e, valid, raw, clock_t=None) -> dict:
                              d.rot * zi[:, 1:2]], axis=1)
         Wr = ind["block"] @ rr
         s["rXX"], s["rXe"] = Wr[:, :6], Wr[:, 6:]
+    if d.quart is not None:
+        Wq = ind["block"] @ np.concatenate([d.quart * zi[:, :1], d.quart ** 2 * fi[:, :1]], axis=1)
+        s["qe"], s["qq"] = Wq[:, :3], Wq[:, 3:]
     _spectral(d, s, zi, inl)
     _raw(d, s, raw)
     _timing(d, s, clock_t)
@@ -432,6 +452,11 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
         A += 1e-9 * np.maximum(np.trace(A, axis1=1, axis2=2), 1e-12)[:, None, None] * np.eye(3)
         rot = np.linalg.solve(A, Xe[..., None])[..., 0]
         p.add("alignment", "dip", [f"apparent rotation against gravity {a}" for a in "xyz"], rot, 1e-4)
+    # quartic: the degree-4 pattern of a per-axis scale nonlinearity (normalised correlation)
+    if "qe" in s:
+        qe, qq = agg(s["qe"]), agg(s["qq"])
+        p.add("quartic", "norm", [f"residual against u_{a}^4 (beyond any ellipsoid)" for a in "xyz"],
+              qe / np.sqrt(np.maximum(qq, 1e-12)), 1e-3)
     # aux
     for name in d.aux_bins:
         XX = np.einsum("cbkj,mb->mckj", s["aXX:" + name], mult)
