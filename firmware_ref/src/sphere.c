@@ -131,54 +131,49 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
     return 1;
 }
 
+/* r_k = |m_k - centre| - F into g->core.ebuf; the selection |r_k - median| <= 3 * 1.4826 MAD (all
+ * rows when the MAD is 0) into *s; returns how many rows it keeps. Scratch: g->core.R. */
+static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, mkc_real F, sel *s)
+{
+    mkc_real *r = g->core.ebuf, *tmp = &g->core.R[0][0], med, mad;
+    int k, n = 0;
+    for (k = 0; k < count; k++) {
+        mkc_real d0 = g->raw[k][0] - centre[0], d1 = g->raw[k][1] - centre[1], d2 = g->raw[k][2] - centre[2];
+        r[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2) - F;
+        tmp[k] = r[k];
+    }
+    med = mkc__median(tmp, count);
+    for (k = 0; k < count; k++)
+        tmp[k] = fabs(r[k] - med);
+    mad = RC(1.4826) * mkc__median(tmp, count);
+    s->use_mask = mad > RC(0.0);
+    s->med = med;
+    s->thr = RC(3.0) * mad;
+    for (k = 0; k < count; k++)
+        n += selected(g, s, k);
+    return n;
+}
+
 /* sphere_fit, then refit without the samples whose |m - b| - F exceeds 3 robust scales (bursts),
  * twice at most. The first fit already leaves out the samples whose distance to the coordinate-wise
  * median is more than 3 robust scales from the median distance (gross spikes). */
 int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F)
 {
     sel all = {0, RC(0.0), RC(0.0)}, first;
-    int pass, k, j, nfirst = 0;
-    mkc_real *r = g->core.ebuf, *tmp = &g->core.R[0][0];
-    mkc_real cm[3], rmed, rmad;
+    int pass, k, j, nfirst;
+    mkc_real *tmp = &g->core.R[0][0];
+    mkc_real cm[3];
     for (j = 0; j < 3; j++) {
         for (k = 0; k < count; k++)
             tmp[k] = g->raw[k][j];
         cm[j] = mkc__median(tmp, count);
     }
-    for (k = 0; k < count; k++) {
-        mkc_real d0 = g->raw[k][0] - cm[0], d1 = g->raw[k][1] - cm[1], d2 = g->raw[k][2] - cm[2];
-        r[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2);
-        tmp[k] = r[k];
-    }
-    rmed = mkc__median(tmp, count);
-    for (k = 0; k < count; k++)
-        tmp[k] = fabs(r[k] - rmed);
-    rmad = RC(1.4826) * mkc__median(tmp, count);
-    first.use_mask = rmad > RC(0.0);
-    first.med = rmed;
-    first.thr = RC(3.0) * rmad;
-    for (k = 0; k < count; k++)
-        nfirst += selected(g, &first, k);
+    nfirst = distance_selection(g, count, cm, RC(0.0), &first);
     if (!sphere_fit(g, count, (first.use_mask && nfirst >= 8) ? &first : &all, b, F))
         return 0;
     for (pass = 0; pass < 2; pass++) {
-        mkc_real med, mad;
         sel keep;
-        int nkeep = 0;
-        for (k = 0; k < count; k++) {
-            mkc_real d0 = g->raw[k][0] - b[0], d1 = g->raw[k][1] - b[1], d2 = g->raw[k][2] - b[2];
-            r[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2) - *F;
-            tmp[k] = r[k];
-        }
-        med = mkc__median(tmp, count);
-        for (k = 0; k < count; k++)
-            tmp[k] = fabs(r[k] - med);
-        mad = RC(1.4826) * mkc__median(tmp, count);
-        keep.use_mask = mad > RC(0.0);
-        keep.med = med;
-        keep.thr = RC(3.0) * mad;
-        for (k = 0; k < count; k++)
-            nkeep += selected(g, &keep, k);
+        int nkeep = distance_selection(g, count, b, *F, &keep);
         if (nkeep < 8 || nkeep == count)
             return 1;
         if (!sphere_fit(g, count, &keep, b, F))

@@ -509,10 +509,11 @@ int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
     return mkc__rebuild(c);
 }
 
-/* mkc__cold_start from mkc__restart_at(theta0) instead of WLS. */
-int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0)
+/* em_rounds: `rounds` of Algorithm 3 on the window (E-step, then fixed-point rebuild) after a restart
+ * whose status is st; stops at the first failure. */
+static int em_rounds(mkc_core_t *c, int rounds, int st)
 {
-    int st = mkc__restart_at(c, theta0), r;
+    int r;
     for (r = 0; r < rounds; r++) {
         if (st != MKC_OK && st != MKC_NOT_CONVERGED)
             return st;
@@ -522,18 +523,17 @@ int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0)
     return st;
 }
 
+/* mkc__cold_start from mkc__restart_at(theta0) instead of WLS. */
+int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0)
+{
+    return em_rounds(c, rounds, mkc__restart_at(c, theta0));
+}
+
 /* Batch MKC-EM (Algorithm 3) on the window from scratch: restart() (WLS, then Algorithm 1 at the
  * start bandwidth), then `rounds` E-step + fixed-point rounds. Returns the last status. */
 int mkc__cold_start(mkc_core_t *c, int rounds)
 {
-    int st = mkc__restart(c), r;
-    for (r = 0; r < rounds; r++) {
-        if (st != MKC_OK && st != MKC_NOT_CONVERGED)
-            return st;
-        mkc__estep_window(c);
-        st = rebuild_with(c, 1);
-    }
-    return st;
+    return em_rounds(c, rounds, mkc__restart(c));
 }
 
 /* Feed one sample (xk: m x n row-major, yk: m) into window slot `slot` (-1: the ring buffer's

@@ -276,6 +276,18 @@ def _sorted_median(e, n):
 
 
 @kernel
+def em_rounds(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, rounds, st):
+    """`rounds` of Algorithm 3 on the window (E-step, then fixed-point rebuild) after a restart whose
+    status is st; stops at the first failure. Returns the last status."""
+    for _ in range(rounds):
+        if st != OK and st != NOT_CONVERGED:
+            return st
+        estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
+        st = rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, True)
+    return st
+
+
+@kernel
 def restart_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, ebuf, cnt, fst, theta0):
     """restart() from a given (high-breakdown) theta0 instead of WLS, as MM-estimation starts.
 
@@ -314,12 +326,7 @@ def cold_start_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, 
                   theta0):
     """cold_start() from restart_at(theta0) (a high-breakdown start) instead of WLS."""
     st = restart_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, ebuf, cnt, fst, theta0)
-    for _ in range(rounds):
-        if st != OK and st != NOT_CONVERGED:
-            return st
-        estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
-        st = rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, True)
-    return st
+    return em_rounds(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, rounds, st)
 
 
 @kernel
@@ -327,12 +334,7 @@ def cold_start(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tpr
     """Batch MKC-EM (Algorithm 3) on the window from scratch: restart() (WLS, then Algorithm 1 at
     the start bandwidth), then `rounds` E-step + fixed-point rounds. Returns the last status."""
     st = restart(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev, cnt, fst)
-    for _ in range(rounds):
-        if st != OK and st != NOT_CONVERGED:
-            return st
-        estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst)
-        st = rebuild_with(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst, R, True)
-    return st
+    return em_rounds(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tprev, R, ebuf, cnt, fst, rounds, st)
 
 
 @kernel(inline='always')
