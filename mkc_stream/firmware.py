@@ -359,19 +359,9 @@ def reason_kind(text: str) -> str:
 
 
 # The C port's calibration is the same record as the Python calibrator's (same fields, same apply).
+# the C port's records are the reference's own types
 from .calib.streaming import Calibration as CCalibration  # noqa: E402
-
-
-@dataclass
-class CCheckpointEvent:
-    samples_seen: int
-    esteps: int
-    accepted: bool
-    reason: str
-    hard_iron: np.ndarray | None = None
-    field: float | None = None
-    coverage: float | None = None
-    outlier_fraction: float | None = None
+from .calib.streaming import CheckpointEvent as CCheckpointEvent  # noqa: E402
 
 
 class CMagCalibrator:
@@ -578,17 +568,22 @@ def python_checkpoints(mags, window=256, estep_every=32, unit="uT", chunk=None, 
     return recs, cal
 
 
+def _c_record(c) -> dict:
+    """The record of the C calibrator's checkpoint that just happened (python_checkpoints' format)."""
+    ev = c._events[-1]
+    cnt = c.cnt
+    trial = c.trial if ev.hard_iron is not None else None
+    c0s0 = c.get(F_C0S0)
+    return _record(cnt[2], cnt[4], cnt[6], c.theta, c.get(F_SIGMA)[0], c.get(F_D)[0], c.get(F_A)[0],
+                   c0s0[:3], c0s0[3], ev.accepted, ev.reason, trial)
+
+
 def c_checkpoints(mags, window=256, estep_every=32, unit="uT", precision="double", **kw):
     """The same records from the C port."""
     recs = []
 
     def on_checkpoint(c):
-        ev = c._events[-1]
-        cnt = c.cnt
-        trial = c.trial if ev.hard_iron is not None else None
-        c0s0 = c.get(F_C0S0)
-        recs.append(_record(cnt[2], cnt[4], cnt[6], c.theta, c.get(F_SIGMA)[0], c.get(F_D)[0], c.get(F_A)[0],
-                            c0s0[:3], c0s0[3], ev.accepted, ev.reason, trial))
+        recs.append(_c_record(c))
 
     cal = CMagCalibrator(window=window, estep_every=estep_every, unit=unit, precision=precision,
                          on_checkpoint=on_checkpoint, **kw)
@@ -644,14 +639,8 @@ def c_segment(mags, state: dict, window=256, estep_every=32, unit="uT", precisio
     out = []
 
     def on_checkpoint(c):
-        if out:
-            return
-        ev = c._events[-1]
-        cnt = c.cnt
-        trial = c.trial if ev.hard_iron is not None else None
-        c0s0 = c.get(F_C0S0)
-        out.append(_record(cnt[2], cnt[4], cnt[6], c.theta, c.get(F_SIGMA)[0], c.get(F_D)[0], c.get(F_A)[0],
-                           c0s0[:3], c0s0[3], ev.accepted, ev.reason, trial))
+        if not out:
+            out.append(_c_record(c))
 
     cal = CMagCalibrator(window=window, estep_every=estep_every, unit=unit, precision=precision,
                          on_checkpoint=on_checkpoint, **kw)
