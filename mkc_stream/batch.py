@@ -132,6 +132,9 @@ class MKCRegressor(LinearModelMixin):
         Truncation bound of the pdf's domain [-a, a] (same units as Y). None: a_factor times the
         largest absolute residual of the channel, re-evaluated at every E-step.
     estep_max_iter, estep_gtol : BFGS caps of the E-step.
+    sigma_pull : weak prior on sigma in nats per e-fold (kernels/estep.py); 0, the paper's ML, by
+        default. The streaming calibrator uses StreamConfig.sigma_pull; pass the same value to
+        reproduce a stream's window exactly.
 
     Attributes
     ----------
@@ -142,7 +145,7 @@ class MKCRegressor(LinearModelMixin):
 
     def __init__(self, em=True, sigma=None, d=None, *, max_em_iter=10, em_tol=1e-6, max_iter=200, tol=1e-9,
                  sigma_bounds=DEFAULT_SIGMA_BOUNDS, d_bounds=DEFAULT_D_BOUNDS, a=None, a_factor=DEFAULT_A_FACTOR,
-                 estep_max_iter=100, estep_gtol=1e-9, theta0=None):
+                 estep_max_iter=100, estep_gtol=1e-9, sigma_pull=0.0, theta0=None):
         self.em = em
         self.theta0 = theta0
         self.sigma = sigma
@@ -157,6 +160,7 @@ class MKCRegressor(LinearModelMixin):
         self.a_factor = a_factor
         self.estep_max_iter = estep_max_iter
         self.estep_gtol = estep_gtol
+        self.sigma_pull = sigma_pull
 
     def _start(self, n):
         if self.theta0 is None:
@@ -207,7 +211,7 @@ class MKCRegressor(LinearModelMixin):
             rounds, fp_its, status, cond = mkc_em(
                 X3, Y2, sigma, d, theta, fixed_a, float(self.a_factor), float(lo), float(hi), float(dlo), float(dhi),
                 em_iter, float(self.em_tol), int(self.max_iter), float(self.tol), int(self.estep_max_iter),
-                float(self.estep_gtol), ws.R, ws.W, ws.A, ws.b, ws.x, ws.L, ws.D, ws.ebuf, ws.tprev, ws.a, ws.Hes,
+                float(self.estep_gtol), float(self.sigma_pull), ws.R, ws.W, ws.A, ws.b, ws.x, ws.L, ws.D, ws.ebuf, ws.tprev, ws.a, ws.Hes,
                 ws.hist_theta, ws.hist_sigma, ws.hist_d)
         else:
             fp_its, status, cond = mstep_fixed_point(X3, Y2, sigma, d, theta, int(self.max_iter), float(self.tol),

@@ -133,7 +133,7 @@ class _Lib:
                         ("fp_rounds", C.c_int), ("estep_max_iter", C.c_int), ("refactor_every", C.c_int),
                         ("min_samples", C.c_int)] + [(k, C.c_double) for k in (
                             "sigma_lo", "sigma_hi", "d_lo", "d_hi", "a_factor", "a", "estep_gtol", "fp_tol",
-                            "sigma_start")]
+                            "sigma_start", "sigma_pull")]
 
         class Rules(C.Structure):
             _fields_ = [(k, real) for k in ("min_coverage", "max_condition", "max_outlier_fraction",

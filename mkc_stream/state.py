@@ -40,6 +40,9 @@ class StreamConfig:
     estep_gtol: float = 1e-7
     fp_tol: float = 1e-12
     sigma_start: float = 20.0     # bandwidth after a restart (the paper's EM start)
+    # Weak prior on sigma, nats per e-fold (kernels/estep.py): the stream's capped E-step would
+    # otherwise wander along the likelihood's flat Gaussian ridge. 0 is the paper's ML.
+    sigma_pull: float = 0.05
 
     def __post_init__(self):
         if self.n < 1 or self.m < 1:
@@ -76,6 +79,7 @@ class StreamConfig:
         f[K.F_SIG_LO], f[K.F_SIG_HI], f[K.F_DLO], f[K.F_DHI] = self.sigma_lo, self.sigma_hi, self.d_lo, self.d_hi
         f[K.F_AFAC], f[K.F_FIXED_A], f[K.F_ES_GTOL], f[K.F_FP_TOL] = self.a_factor, self.a, self.estep_gtol, self.fp_tol
         f[K.F_SIG_START] = self.sigma_start
+        f[K.F_SIG_PULL] = self.sigma_pull
         return f
 
     def to_dict(self):

@@ -43,8 +43,10 @@ def batch_checkpoint(est, pre):
         a = max(cfg.a_factor * np.abs(R[:, i]).max(), 1e-12 * (1.0 + np.abs(Y[:, i]).max())) if cfg.a <= 0 else cfg.a
         if not (0.5 * pre["a"][i] <= a <= 2.0 * pre["a"][i]):
             H[i] = 0.0               # the stream forgets the curvature when a moves by > 2x
+            if pre["a"][i] > 0.0 and a > 2.0 * pre["a"][i] and sigma[i] > K.START_SIGMA_ROBUST:
+                sigma[i] = K.START_SIGMA_ROBUST   # ... and restarts sigma on the robust side after a burst
         s, dd, F, its, stt = estep_channel(R[:, i].copy(), count, a, sigma[i], d[i], cfg.sigma_lo, cfg.sigma_hi,
-                                           cfg.d_lo * a, cfg.d_hi * a, cfg.estep_max_iter, cfg.estep_gtol, H[i])
+                                           cfg.d_lo * a, cfg.d_hi * a, cfg.estep_max_iter, cfg.estep_gtol, cfg.sigma_pull, H[i])
         sigma[i], d[i] = s, dd
     mstep_fixed_point(X, Y, sigma, d, theta, cfg.fp_rounds, cfg.fp_tol, *ws)
     return theta, sigma, d

@@ -3,7 +3,7 @@
 Golden vectors (tests/data/golden/, tools/gen_golden.py) hold the Python reference's state at every
 E-step checkpoint of synthetic streams and real recordings. The C double build must reproduce them
 to <= 1e-9 (it does bit for bit: same operations in the same order, same libm); the float build
-free-running must make the same decisions and stay within FLOAT_FREE on the accepted calibrations,
+free-running must make the same decisions and stay within 1e-4 on theta and the accepted calibrations,
 and teacher-forced (restarted from the reference's state) within 1e-4 on theta and the calibration
 at every well-posed checkpoint. Everything runs in-process (ctypes) and through mkc_replay; the
 sanitizer build runs the vector suite; valgrind is a slow test. No C compiler or make: skipped with
@@ -33,7 +33,9 @@ LINEAR = [n for n, v in VECTORS.items() if v["kind"] == "linear"]
 REPLAY = [n for n in MAG if VECTORS[n]["replay"]]
 TOL = INDEX["tolerances"]["double"]
 FLOAT_SEGMENT = INDEX["float_segment_tolerance"]     # 1e-4: theta and the calibration, teacher-forced
-FLOAT_FREE = 2e-3        # free-running float: accepted calibrations (|db|/F, S, F); measured max 1.3e-3
+# free-running float, at every accepted checkpoint: theta and the calibration (|db|/F, S, F), the issue's
+# 1e-4 (measured max 2.8e-6 over all vectors; 2.8e-3 before the E-step's weak prior on sigma)
+FLOAT_FREE = 1e-4
 
 
 def _libm_matches():
@@ -145,6 +147,7 @@ def test_golden_float_free_running(built, name):
     for k, r in enumerate(recs_c):
         if g["accepted"][k]:
             F = g["field"][k]
+            assert FW.rel_diff(r["theta"], g["theta"][k]) <= FLOAT_FREE
             assert np.abs(r["hard_iron"] - g["hard_iron"][k]).max() / F <= FLOAT_FREE
             assert FW.rel_diff(r["soft_iron"].ravel(), g["soft_iron"][k]) <= FLOAT_FREE
             assert abs(r["field"] - F) / F <= FLOAT_FREE

@@ -75,7 +75,7 @@ def main(argv=None):
     MKCRegressor(sigma=20, d=[1, 2], max_em_iter=3).fit(X, Y)
     fit_ellipsoid(s.raw, "mkc-em")
     fit_ellipsoid(s.raw, "ls")
-    estep_channel(e, e.size, a, 20.0, 1.0, 0.05, 1e3, 1e-6 * a, a, 100, 1e-9, np.zeros(3))
+    estep_channel(e, e.size, a, 20.0, 1.0, 0.05, 1e3, 1e-6 * a, a, 100, 1e-9, 0.0, np.zeros(3))
 
     res = {}
     res["example2_mkc_em_3_rounds"] = timeit(lambda: MKCRegressor(sigma=20, d=[1, 2], max_em_iter=3, em_tol=0.0).fit(X, Y), args.repeat)
@@ -84,7 +84,7 @@ def main(argv=None):
     res["ellipsoid_2000_mkc_em"] = timeit(lambda: fit_ellipsoid(s.raw, "mkc-em"), max(20, args.repeat // 10))
     res["ellipsoid_2000_ls"] = timeit(lambda: fit_ellipsoid(s.raw, "ls"), max(20, args.repeat // 10))
     res["estep_one_channel_N100_cold_start"] = timeit(
-        lambda: estep_channel(e, e.size, a, 20.0, 1.0, 0.05, 1e3, 1e-6 * a, a, 100, 1e-9, np.zeros(3)), args.repeat)
+        lambda: estep_channel(e, e.size, a, 20.0, 1.0, 0.05, 1e3, 1e-6 * a, a, 100, 1e-9, 0.0, np.zeros(3)), args.repeat)
     res["normaliser_call"] = timeit(lambda: [log_normaliser_grad(2.3, 40.0) for _ in range(100)], args.repeat)
     res["normaliser_call"] = {k: v / 100 for k, v in res["normaliser_call"].items()}
     if not args.no_startup:

@@ -60,7 +60,7 @@ def render() -> str:
     p(f"#define MKC_N_ICFG {K.N_ICFG}")
     p("/* float configuration indices (fcfg) */")
     for name in ("F_SIG_LO", "F_SIG_HI", "F_DLO", "F_DHI", "F_AFAC", "F_FIXED_A", "F_ES_GTOL", "F_FP_TOL",
-                 "F_SIG_START"):
+                 "F_SIG_START", "F_SIG_PULL"):
         p(f"#define MKC_{name} {getattr(K, name)}")
     p(f"#define MKC_N_FCFG {K.N_FCFG}")
     p("/* counters (cnt) */")
@@ -101,7 +101,8 @@ def render() -> str:
     p("/* StreamConfig defaults (state.py) */")
     for name in ("fp_rounds", "estep_max_iter", "refactor_every", "min_samples"):
         p(f"#define MKC_DEF_{name.upper()} {getattr(cfg, name)}")
-    for name in ("sigma_lo", "sigma_hi", "d_lo", "d_hi", "a_factor", "a", "estep_gtol", "fp_tol", "sigma_start"):
+    for name in ("sigma_lo", "sigma_hi", "d_lo", "d_hi", "a_factor", "a", "estep_gtol", "fp_tol", "sigma_start",
+                 "sigma_pull"):
         v = getattr(cfg, name)
         p(f"#define MKC_DEF_{name.upper()} {_hex(v)} /* {v!r} */")
     from mkc_stream.batch import DEFAULT_SIGMA_START

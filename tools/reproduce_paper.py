@@ -223,7 +223,7 @@ def likelihood_comparison(N=20000, p_fixed=0.2, a=20.0):
     for p in ps:
         e = residuals(p)
         # sigma* = argmax log L_CL with d = 1 fixed (Remark 6): the E-step with a degenerate d box
-        s, d, F, its, st = estep_channel(e, e.size, a, 2.0, 1.0, 0.05, 1000.0, 1.0, 1.0, 200, 1e-10, np.zeros(3))
+        s, d, F, its, st = estep_channel(e, e.size, a, 2.0, 1.0, 0.05, 1000.0, 1.0, 1.0, 200, 1e-10, 0.0, np.zeros(3))
         ll_cl.append(-F)
         ll_wls.append(gauss(e))
         s_star.append(s)

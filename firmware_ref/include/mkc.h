@@ -72,12 +72,14 @@ typedef struct mkc_config {
     int refactor_every;     /* tracking steps between Cholesky refreshes (0: min(K, max(1, W/8))) */
     int min_samples;        /* samples before the first solve (0: ceil(max(2n, n+8) / m)) */
     double sigma_lo, sigma_hi, d_lo, d_hi, a_factor, a, estep_gtol, fp_tol, sigma_start;
+    double sigma_pull;      /* weak prior on sigma, nats per e-fold (0: the paper's ML) */
 } mkc_config;
 
 /* ---- the state (mkc_stream/state.py STATE_FIELDS; X, Y in the outer struct, scratch R, ebuf last) ---- */
 typedef struct mkc_core {
     int32_t icfg[8];                 /* n, m, W, K, fp_rounds, es_max_iter, min_samples, refactor */
-    mkc_real fcfg[9];                /* sig_lo, sig_hi, d_lo, d_hi, a_factor, fixed_a, es_gtol, fp_tol, sig_start */
+    mkc_real fcfg[10];               /* sig_lo, sig_hi, d_lo, d_hi, a_factor, fixed_a, es_gtol, fp_tol, sig_start,
+                                        sig_pull */
     int32_t rows;                    /* where rows come from: 0 X/Y of mkc_stream_t, 1 raw of mkc_mag_t */
     mkc_real C[MKC_W][MKC_M];        /* the c = w/d^2 each row added */
     mkc_acc A[MKC_N][MKC_N];         /* weighted normal matrix (eq. 15), lower triangle */

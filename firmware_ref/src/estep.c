@@ -2,7 +2,8 @@
  * kernels/estep.py line by line.
  *
  * F(sigma, d) = log d + log Z(sigma, a/d) + (sigma^2 / N) sum_k (1 - exp(-e_k^2 / (2 d^2 sigma^2)))
- * (the paper's "log(c_i - d_i)" read as log(c_i / d_i)), minimised over (log sigma, log d) inside a
+ *               - (pull / N) log sigma
+ * (the last term a weak prior on sigma, see kernels/estep.py; the paper's "log(c_i - d_i)" read as log(c_i / d_i)), minimised over (log sigma, log d) inside a
  * box by projected BFGS with Armijo backtracking, analytic gradients, at most max_iter iterations
  * (+ FAR_EXTRA_ITER while far from the optimum; each with at most 40 halvings and a bounded
  * doubling), warm-started from H. A non-finite trial
@@ -28,8 +29,8 @@ static void omh_terms(mkc_ereal q, mkc_ereal *omh, mkc_ereal *omh_qh, mkc_ereal 
 /* F and its gradient in (log sigma, log d) for the residuals e[:n] truncated to [-a, a]. The caller
  * passes the squares e2[k] = e[k] e[k]: the reference's q = e[k] * e[k] * inv is (e[k] e[k]) inv,
  * so squaring once per E-step instead of once per evaluation gives the same q. */
-static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal *g0,
-                           mkc_ereal *g1)
+static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
+                           mkc_ereal *g0, mkc_ereal *g1)
 {
     mkc_ereal sigma = exp(ls);
     mkc_ereal d = exp(ld);
@@ -73,32 +74,32 @@ static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n
         acc_s += omh_qh;
         acc_d += q * h;
     }
-    F = ld + logZ + s2 * acc / (mkc_ereal)n;
+    F = ld + logZ + s2 * acc / (mkc_ereal)n - pull * ls / (mkc_ereal)n;    /* the weak prior on sigma */
     dF_ds = dZs + EC(2.0) * sigma * acc_s / (mkc_ereal)n;
     dF_dd = EC(1.0) / d - (a / (d * d)) * dZA - EC(2.0) * s2 / d * acc_d / (mkc_ereal)n;
-    *g0 = sigma * dF_ds;
+    *g0 = sigma * dF_ds - pull / (mkc_ereal)n;
     *g1 = d * dF_dd;
     return F;
 }
 
 /* exported for tests and tools; the optimiser calls the file-local objective (inlinable also in
  * a shared object) */
-mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal *g0,
-                               mkc_ereal *g1)
+mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
+                               mkc_ereal *g0, mkc_ereal *g1)
 {
-    return objective(ls, ld, e2, n, a, g0, g1);
+    return objective(ls, ld, e2, n, a, pull, g0, g1);
 }
 
 #define FIN3(a, b, c) (isfinite(a) && isfinite(b) && isfinite(c))
 #define CLAMP(v, lo, hi) mkc__min_e(mkc__max_e((v), (lo)), (hi))
 
 /* Maximum-likelihood (sigma, d) of one channel from the squared residuals e2[:n], warm-started at
- * (sigma0, d0). H (3) = (h00, h01,
+ * (sigma0, d0); pull > 0 adds the weak prior on sigma. H (3) = (h00, h01,
  * h11), the BFGS inverse-Hessian approximation in (log sigma, log d), is read as the warm start and
  * written back (H[0] <= 0: none known). On MKC_NONFINITE / MKC_BAD_INPUT the start is returned. */
 int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0, mkc_ereal d0, mkc_ereal sig_lo,
-                       mkc_ereal sig_hi, mkc_ereal d_lo, mkc_ereal d_hi, int max_iter, mkc_ereal gtol, mkc_ereal *H,
-                       mkc_ereal *sigma_out, mkc_ereal *d_out, mkc_ereal *F_out, int *iters)
+                       mkc_ereal sig_hi, mkc_ereal d_lo, mkc_ereal d_hi, int max_iter, mkc_ereal gtol, mkc_ereal pull,
+                       mkc_ereal *H, mkc_ereal *sigma_out, mkc_ereal *d_out, mkc_ereal *F_out, int *iters)
 {
     mkc_ereal lo0, hi0, lo1, hi1, z0, z1, F, g0, g1, h00, h01, h11;
     mkc_ereal n0 = EC(0.0), n1 = EC(0.0), Fn = EC(0.0), gn0 = EC(0.0), gn1 = EC(0.0);
@@ -116,7 +117,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
     hi1 = log(d_hi);
     z0 = CLAMP(log(sigma0), lo0, hi0);
     z1 = CLAMP(log(d0), lo1, hi1);
-    F = objective(z0, z1, e2, n, a, &g0, &g1);
+    F = objective(z0, z1, e2, n, a, pull, &g0, &g1);
     if (!FIN3(F, g0, g1)) {
         *sigma_out = sigma0;
         *d_out = d0;
@@ -169,7 +170,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         for (ls = 0; ls < 40; ls++) {
             n0 = CLAMP(z0 + alpha * p0, lo0, hi0);
             n1 = CLAMP(z1 + alpha * p1, lo1, hi1);
-            Fn = objective(n0, n1, e2, n, a, &gn0, &gn1);
+            Fn = objective(n0, n1, e2, n, a, pull, &gn0, &gn1);
             if (FIN3(Fn, gn0, gn1)) {
                 if (Fn <= F + EC(1e-4) * (g0 * (n0 - z0) + g1 * (n1 - z1))) {
                     accepted = 1;
@@ -188,7 +189,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
                 mkc_ereal t0 = CLAMP(z0 + EC(2.0) * alpha * p0, lo0, hi0);
                 mkc_ereal t1 = CLAMP(z1 + EC(2.0) * alpha * p1, lo1, hi1);
                 mkc_ereal gt0, gt1;
-                mkc_ereal Ft = objective(t0, t1, e2, n, a, &gt0, &gt1);
+                mkc_ereal Ft = objective(t0, t1, e2, n, a, pull, &gt0, &gt1);
                 if (!FIN3(Ft, gt0, gt1) || Ft >= Fn)
                     break;
                 alpha *= EC(2.0);

@@ -80,11 +80,11 @@ int mkc__jacobi_eigen(double a[9][9], int k, double *w, double V[9][9]);
 int mkc__solve3(const double A[3][3], const double *b, double *x);
 
 /* ---- estep.c (kernels/estep.py) ---- */
-mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal *g0,
-                               mkc_ereal *g1);
+mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
+                               mkc_ereal *g0, mkc_ereal *g1);
 int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0, mkc_ereal d0, mkc_ereal sig_lo,
-                       mkc_ereal sig_hi, mkc_ereal d_lo, mkc_ereal d_hi, int max_iter, mkc_ereal gtol, mkc_ereal *H,
-                       mkc_ereal *sigma, mkc_ereal *d, mkc_ereal *F, int *iters);
+                       mkc_ereal sig_hi, mkc_ereal d_lo, mkc_ereal d_hi, int max_iter, mkc_ereal gtol, mkc_ereal pull,
+                       mkc_ereal *H, mkc_ereal *sigma, mkc_ereal *d, mkc_ereal *F, int *iters);
 
 /* ---- window.c (kernels/window.py) ---- */
 /* Rows of the window: stored (mkc_stream_t) or the ellipsoid features of raw (mkc_mag_t). */

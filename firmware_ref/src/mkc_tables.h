@@ -32,7 +32,8 @@
 #define MKC_F_ES_GTOL 6
 #define MKC_F_FP_TOL 7
 #define MKC_F_SIG_START 8
-#define MKC_N_FCFG 9
+#define MKC_F_SIG_PULL 9
+#define MKC_N_FCFG 10
 /* counters (cnt) */
 #define MKC_C_HEAD 0
 #define MKC_C_COUNT 1
@@ -109,6 +110,7 @@ static const double mkc_gl_weights[MKC_GL_ORDER] = {
 #define MKC_DEF_ESTEP_GTOL 0x1.ad7f29abcaf48p-24 /* 1e-07 */
 #define MKC_DEF_FP_TOL 0x1.19799812dea11p-40 /* 1e-12 */
 #define MKC_DEF_SIGMA_START 0x1.4000000000000p+4 /* 20.0 */
+#define MKC_DEF_SIGMA_PULL 0x1.999999999999ap-5 /* 0.05 */
 #define MKC_DEF_SIGMA0 0x1.4000000000000p+4 /* 20.0: batch.DEFAULT_SIGMA_START */
 
 /* AcceptanceRules defaults (calib/acceptance.py) */

@@ -59,21 +59,25 @@ static int chol4(const double N[4][4], const double *r, double *x)
 /* sphere_fit on the selected rows of raw[:count]; returns 0 when the fit is not a sphere. */
 static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mkc_real *F_out)
 {
-    mkc_real c[3] = {RC(0.0), RC(0.0), RC(0.0)}, scale, F2, bb[3], kk;
+    mkc_real c[3] = {RC(0.0), RC(0.0), RC(0.0)}, ref[3], scale, F2, bb[3], kk;
     double N[4][4], rhs[4], x[4] = {0.0, 0.0, 0.0, 0.0}, dx[4];
     int k, j, p, q, it, nsel = 0;
-    /* c = mag.mean(axis=0): numpy reduces axis 0 row by row */
+    /* c = ref + (mag - ref).mean(axis=0), ref the first selected row: summing raw values far from
+     * the origin directly loses ~0.1 count in float; numpy reduces axis 0 row by row */
     for (k = 0; k < count; k++) {
         if (!selected(g, m, k))
             continue;
+        if (nsel == 0)
+            for (j = 0; j < 3; j++)
+                ref[j] = g->raw[k][j];
         for (j = 0; j < 3; j++)
-            c[j] += g->raw[k][j];
+            c[j] += g->raw[k][j] - ref[j];
         nsel++;
     }
     if (nsel < 1)
         return 0;
     for (j = 0; j < 3; j++)
-        c[j] /= (mkc_real)nsel;
+        c[j] = ref[j] + c[j] / (mkc_real)nsel;
     /* scale = sqrt(mean(sum((mag - c)^2, axis=1))) or 1.0 */
     for (k = 0, p = 0; k < count; k++) {
         mkc_real d0, d1, d2;

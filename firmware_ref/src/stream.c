@@ -20,6 +20,7 @@ void mkc_config_default(mkc_config *cfg, int n, int m)
     cfg->estep_gtol = MKC_DEF_ESTEP_GTOL;
     cfg->fp_tol = MKC_DEF_FP_TOL;
     cfg->sigma_start = MKC_DEF_SIGMA_START;
+    cfg->sigma_pull = MKC_DEF_SIGMA_PULL;
 }
 
 int mkc_stream_init(mkc_stream_t *st, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,

@@ -399,12 +399,17 @@ void mkc__estep_window(mkc_core_t *c)
             c->Hes[i][0] = EC(0.0);
             c->Hes[i][1] = EC(0.0);
             c->Hes[i][2] = EC(0.0);
+            /* A burst entered (a grew): restart sigma on the robust side; in the Gaussian regime the
+             * likelihood's slope is weaker than the prior's pull (estep.c), so it would never be seen */
+            if (c->a[i] > RC(0.0) && ai > RC(2.0) * c->a[i] && c->sigma[i] > RC(MKC_START_SIGMA_ROBUST))
+                c->sigma[i] = RC(MKC_START_SIGMA_ROBUST);
         }
         c->a[i] = ai;
         st = mkc__estep_channel(c->ebuf, count, (mkc_ereal)ai, (mkc_ereal)c->sigma[i], (mkc_ereal)c->d[i],
                                 (mkc_ereal)FCFG(c, MKC_F_SIG_LO), (mkc_ereal)FCFG(c, MKC_F_SIG_HI),
                                 (mkc_ereal)(FCFG(c, MKC_F_DLO) * ai), (mkc_ereal)(FCFG(c, MKC_F_DHI) * ai),
-                                ICFG(c, MKC_I_ES_MAX_ITER), (mkc_ereal)FCFG(c, MKC_F_ES_GTOL), c->Hes[i], &s_new,
+                                ICFG(c, MKC_I_ES_MAX_ITER), (mkc_ereal)FCFG(c, MKC_F_ES_GTOL),
+                                (mkc_ereal)FCFG(c, MKC_F_SIG_PULL), c->Hes[i], &s_new,
                                 &d_new, &F, &its);
         if (st == MKC_OK || st == MKC_NOT_CONVERGED) {
             c->sigma[i] = (mkc_real)s_new;
@@ -643,7 +648,8 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
         return MKC_BAD_INPUT;
     if (!(cfg->sigma_lo > 0.0 && cfg->sigma_lo < cfg->sigma_hi) || !(cfg->d_lo > 0.0 && cfg->d_lo < cfg->d_hi) ||
         !(cfg->a_factor > 0.0) || !isfinite(cfg->a) || !(cfg->estep_gtol >= 0.0) || !(cfg->fp_tol >= 0.0) ||
-        !(cfg->sigma_start > 0.0) || !isfinite(cfg->sigma_hi) || !isfinite(cfg->d_hi) || !isfinite(cfg->sigma_start))
+        !(cfg->sigma_start > 0.0) || !isfinite(cfg->sigma_hi) || !isfinite(cfg->d_hi) || !isfinite(cfg->sigma_start) ||
+        !(cfg->sigma_pull >= 0.0) || !isfinite(cfg->sigma_pull))
         return MKC_BAD_INPUT;
     for (i = 0; i < m; i++) {
         if (sigma0 && !(sigma0[i] > RC(0.0) && isfinite(sigma0[i])))
@@ -687,6 +693,7 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
     c->fcfg[MKC_F_ES_GTOL] = (mkc_real)cfg->estep_gtol;
     c->fcfg[MKC_F_FP_TOL] = (mkc_real)cfg->fp_tol;
     c->fcfg[MKC_F_SIG_START] = (mkc_real)cfg->sigma_start;
+    c->fcfg[MKC_F_SIG_PULL] = (mkc_real)cfg->sigma_pull;
     c->rows = rows;
     for (i = 0; i < m; i++) {
         c->sigma[i] = sigma0 ? sigma0[i] : RC(MKC_DEF_SIGMA0);

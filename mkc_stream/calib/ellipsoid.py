@@ -126,7 +126,11 @@ def sphere_fit(mag: np.ndarray):
     Well-posed wherever the origin lies (unlike the "= 1" ellipsoid form), hence the embedded
     peers' first step. Returns (b, F), or None when the fit is not a sphere (F^2 <= 0).
     """
-    c = mag.mean(axis=0)
+    # the mean about the first sample: raw counts sit far from the origin (6000 counts around a
+    # radius of 75), and a float build summing them directly loses ~0.1 count in the centre, which
+    # moves the features' normalisation and hence the direction cells that decide what the window keeps
+    ref = mag[0]
+    c = ref + (mag - ref).mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((mag - c) ** 2, axis=1)))) or 1.0
     m = (mag - c) / scale
     sol = lstsq_sphere(m)        # the columns [2 m, 1] against |m|^2, reproducibly (calib/portable.py)

@@ -322,7 +322,7 @@ def _kernel(z):
     a = 1.5 * float(np.max(np.abs(z)))
     H = np.zeros(3)
     sig, dd, _, _, _ = estep_channel(np.ascontiguousarray(z), z.size, a, 2.0, 1.0, 0.05, 1000.0, 1e-6 * a, a,
-                                     60, 1e-7, H)
+                                     60, 1e-7, 0.0, H)
     return np.log(sig), np.log(dd)
 
 

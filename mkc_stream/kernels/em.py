@@ -28,7 +28,7 @@ def truncation_bound(R, i, fixed_a, a_factor, Y):
 
 @kernel
 def mkc_em(X, Y, sigma, d, theta, fixed_a, a_factor, sig_lo, sig_hi, d_lo_frac, d_hi_frac,
-           em_iter, em_tol, fp_max_iter, fp_tol, es_max_iter, es_gtol,
+           em_iter, em_tol, fp_max_iter, fp_tol, es_max_iter, es_gtol, es_pull,
            R, W, A, b, x, L, D, ebuf, tprev, a_out, Hes, hist_theta, hist_sigma, hist_d):
     """Run MKC-EM in place on (theta, sigma, d). Returns (em_rounds, fp_iters, status, cond).
 
@@ -59,7 +59,7 @@ def mkc_em(X, Y, sigma, d, theta, fixed_a, a_factor, sig_lo, sig_hi, d_lo_frac, 
             a = truncation_bound(R, i, fixed_a, a_factor, Y)
             a_out[i] = a
             s_new, d_new, F, its, st = estep_channel(ebuf, N, a, sigma[i], d[i], sig_lo, sig_hi,
-                                                     d_lo_frac * a, d_hi_frac * a, es_max_iter, es_gtol, Hes[i])
+                                                     d_lo_frac * a, d_hi_frac * a, es_max_iter, es_gtol, es_pull, Hes[i])
             if st == OK or st == NOT_CONVERGED:
                 dpar = max(dpar, abs(math.log(s_new / sigma[i])), abs(math.log(d_new / d[i])))
                 sigma[i] = s_new

@@ -4,11 +4,22 @@ Objective (per channel, divided by N so its scale does not depend on N), with th
 "log(c_i - d_i)" read as log(c_i / d_i) = -log(d_i Z):
 
     F(sigma, d) = log d + log Z(sigma, a/d) + (sigma^2 / N) sum_k (1 - exp(-e_k^2 / (2 d^2 sigma^2)))
+                  - (pull / N) log sigma
 
 minimised over z = (log sigma, log d) inside a box (so sigma can never collapse to 0 or d to a
 spike) by a projected BFGS (the paper's Algorithm 2 uses BFGS) with Armijo backtracking, an
 active-set rule at the bounds, analytic gradients, a bounded iteration count and a warm start.
 A non-finite value is treated as a failed trial step, so NaN never enters the state.
+
+The last term is ours, not the paper's (pull = 0 is its ML): a prior p(sigma) ~ sigma^pull, worth
+`pull` nats per e-fold of sigma over the whole window. Once sigma exceeds the residuals' range the
+induced pdf is Gaussian whatever sigma is, and the likelihood is flat to ~0.1 nat from sigma ~ 5
+to 1000 (Section III-D); a capped, warm-started BFGS then stops wherever its gradient first falls
+below gtol, so the stream's sigma wanders along the flat ridge and takes the calibration with it
+(a 1e-7 change of the input moved a real recording's calibration by 1e-3). A pull of 0.05 nat per
+e-fold sends that ridge to the Gaussian end (sigma_hi), where the weights are 1 and the fit is
+plain least squares, and moves a real optimum (tens of nats deep once bursts are present) by
+~pull / curvature, i.e. not visibly.
 """
 import math
 
@@ -40,7 +51,7 @@ def _omh_terms(q):
 
 
 @kernel
-def estep_objective(ls, ld, e, n, a):
+def estep_objective(ls, ld, e, n, a, pull):
     """F and its gradient in (log sigma, log d) for residuals e[:n] on the truncation [-a, a]."""
     sigma = math.exp(ls)
     d = math.exp(ld)
@@ -58,15 +69,16 @@ def estep_objective(ls, ld, e, n, a):
         acc_s += omh_qh
         # d/dd [sigma^2 (1-h)] = -h e^2 / d^3 = -(2 sigma^2 / d) q h
         acc_d += q * h
-    F = ld + logZ + s2 * acc / n
+    F = ld + logZ + s2 * acc / n - pull * ls / n
     dF_ds = dZs + 2.0 * sigma * acc_s / n
     dF_dd = 1.0 / d - (a / (d * d)) * dZA - 2.0 * s2 / d * acc_d / n
-    return F, sigma * dF_ds, d * dF_dd
+    return F, sigma * dF_ds - pull / n, d * dF_dd
 
 
 @kernel
-def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gtol, H):
-    """Maximum-likelihood (sigma, d) of one channel (Algorithm 2), warm-started at (sigma0, d0).
+def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gtol, pull, H):
+    """Maximum-likelihood (sigma, d) of one channel (Algorithm 2), warm-started at (sigma0, d0);
+    pull > 0 adds the weak prior on sigma of the module doc.
 
     H (3,) = (h00, h01, h11) is the BFGS inverse-Hessian approximation in (log sigma, log d),
     read as the warm start and written back (H[0] <= 0 means "no curvature known yet"), so a
@@ -81,7 +93,7 @@ def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gto
     hi1 = math.log(d_hi)
     z0 = min(max(math.log(sigma0), lo0), hi0)
     z1 = min(max(math.log(d0), lo1), hi1)
-    F, g0, g1 = estep_objective(z0, z1, e, n, a)
+    F, g0, g1 = estep_objective(z0, z1, e, n, a, pull)
     if not (math.isfinite(F) and math.isfinite(g0) and math.isfinite(g1)):
         return sigma0, d0, F, 0, NONFINITE
     # inverse-Hessian approximation; F ~ log d + s^2/(2 d^2) has curvature 2 in log d
@@ -122,7 +134,7 @@ def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gto
         for _ in range(40):
             n0 = min(max(z0 + alpha * p0, lo0), hi0)
             n1 = min(max(z1 + alpha * p1, lo1), hi1)
-            Fn, gn0, gn1 = estep_objective(n0, n1, e, n, a)
+            Fn, gn0, gn1 = estep_objective(n0, n1, e, n, a, pull)
             if math.isfinite(Fn) and math.isfinite(gn0) and math.isfinite(gn1):
                 if Fn <= F + 1e-4 * (g0 * (n0 - z0) + g1 * (n1 - z1)):
                     accepted = True
@@ -137,7 +149,7 @@ def estep_channel(e, n, a, sigma0, d0, sig_lo, sig_hi, d_lo, d_hi, max_iter, gto
             while 2.0 * alpha * pnorm <= 2.0:
                 t0 = min(max(z0 + 2.0 * alpha * p0, lo0), hi0)
                 t1 = min(max(z1 + 2.0 * alpha * p1, lo1), hi1)
-                Ft, gt0, gt1 = estep_objective(t0, t1, e, n, a)
+                Ft, gt0, gt1 = estep_objective(t0, t1, e, n, a, pull)
                 if not (math.isfinite(Ft) and math.isfinite(gt0) and math.isfinite(gt1)) or Ft >= Fn:
                     break
                 alpha *= 2.0

@@ -34,8 +34,8 @@ REJECTED = 6       # the sample had NaN/inf and was not added
 I_N, I_M, I_W, I_K, I_FP_ROUNDS, I_ES_MAX_ITER, I_MIN_SAMPLES, I_REFACTOR = range(8)
 N_ICFG = 8
 # fcfg: float configuration
-F_SIG_LO, F_SIG_HI, F_DLO, F_DHI, F_AFAC, F_FIXED_A, F_ES_GTOL, F_FP_TOL, F_SIG_START = range(9)
-N_FCFG = 9
+F_SIG_LO, F_SIG_HI, F_DLO, F_DHI, F_AFAC, F_FIXED_A, F_ES_GTOL, F_FP_TOL, F_SIG_START, F_SIG_PULL = range(10)
+N_FCFG = 10
 # cnt: int64 counters
 (C_HEAD, C_COUNT, C_SEEN, C_REJECTED, C_ESTEPS, C_SINCE, C_STATUS, C_SINGULAR, C_FP_ITERS,
  C_LAST_SLOT, C_RESTARTS, C_FACTOR_AGE, C_FACTORS) = range(13)
@@ -209,10 +209,17 @@ def estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst):
             Hes[i, 0] = 0.0
             Hes[i, 1] = 0.0
             Hes[i, 2] = 0.0
+            # A burst entered (a grew): restart sigma on the robust side. In the Gaussian regime the
+            # likelihood's slope is O(1/sigma^2), weaker than the prior's pull (estep.py), and a
+            # barrier may separate it from the robust optimum, so from sigma_hi (or 20) the E-step
+            # would never see the burst; from 2 it descends to the robust optimum if the data have
+            # one and climbs back to the Gaussian end if not (as MM-estimation starts robust).
+            if a[i] > 0.0 and ai > 2.0 * a[i] and sigma[i] > START_SIGMA_ROBUST:      # (a = 0: first E-step)
+                sigma[i] = START_SIGMA_ROBUST
         a[i] = ai
         s_new, d_new, F, its, st = estep_channel(ebuf, count, ai, sigma[i], d[i], fcfg[F_SIG_LO], fcfg[F_SIG_HI],
                                                  fcfg[F_DLO] * ai, fcfg[F_DHI] * ai, icfg[I_ES_MAX_ITER],
-                                                 fcfg[F_ES_GTOL], Hes[i])
+                                                 fcfg[F_ES_GTOL], fcfg[F_SIG_PULL], Hes[i])
         if st == OK or st == NOT_CONVERGED:
             sigma[i] = s_new
             d[i] = d_new
