@@ -53,6 +53,7 @@ def test_blind_benchmark_full(full_score):
     """The measured run (README): the acceptance lines it meets, at the issue's thresholds."""
     S = full_score
     assert S["false_alarm_rate"] <= 0.05
+    assert S["named_first"] >= 0.9
     assert S["shrink_correct_ge_0.7"] >= 0.9
     assert S["removed_unexplained_or_partial"] >= 0.7 and S["removed_wrong_claimed"] <= 0.2
     assert S["magnitude_rel_error_median"] <= 0.2
@@ -61,10 +62,14 @@ def test_blind_benchmark_full(full_score):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): with magnitudes over the issue's whole "
-                                       "realistic ranges, named first 87.7% of 65 trials an oracle could see, pair "
-                                       "coverage 64% (small temperature tempcos under a ramp not detected), best "
-                                       "wrong effect <= 0.3 in 42%, each measured against 90%; strict, so it fails "
-                                       "loudly once they are met")
+                                       "realistic ranges, named first per effect >= 80% fails for hard_iron_drift 1/2, "
+                                       "colored_noise 2/4, bias_random_walk 3/4, latency 3/4 (overall 60/65 = 92.3%, "
+                                       "met); pair coverage 9/14 = 64% (three small thermal offsets under a ramp: their "
+                                       "oracle SNR 4.6-9.4 is mostly the dip channel's, with the magnetometer's noise "
+                                       "alone, not the ~0.03 rad the motion's linear acceleration adds; the norm "
+                                       "channel's oracle SNR is 2.3-3.9); best wrong effect <= 0.3 in 41%; each "
+                                       "measured against 90%; strict, so it fails loudly once they are met")
 def test_blind_benchmark_unmet_lines(full_score):
     S = full_score
-    assert S["named_first"] >= 0.9 and S["pair_truth_in_set"] >= 0.9 and S["best_wrong_le_0.3"] >= 0.9
+    assert min(S["named_first_per_effect"].values()) >= 0.8
+    assert S["pair_truth_in_set"] >= 0.9 and S["best_wrong_le_0.3"] >= 0.9

@@ -26,10 +26,16 @@ not see it.
 4. Shrink = (G0 - G) / (G0 - 1) with a bootstrap interval; magnitudes in natural units with a
    bootstrap over the first fold's training blocks. For effects left out, the shrink they would
    add on top of the selected ones is ``shrink_given_selected``.
+5. When the gap index is at its null level but a matched test of a mean effect fired
+   (:mod:`.matched`), steps 2-4 are made on the matched evidence instead
+   (:meth:`Attribution._run_matched`): the shrink is the fraction of the fired tests' excess
+   an effect removes, ambiguity is "explains the first one's evidence away", and the selected
+   magnitudes are refitted on all blocks.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -37,7 +43,8 @@ from ..sim.effects import EFFECTS
 from . import gap
 from .engine import CATCH_ALL, Candidate, Engine, Evaluation
 from .forms import FORMS, MeanForm, implausible
-from .model import block_normals, bootstrap_theta
+from .matched import NULL_LEVEL
+from .model import block_normals, bootstrap_theta, fit_model
 
 MIN_STEP = 0.1
 MAX_EFFECTS = 3
@@ -78,8 +85,11 @@ def _resample(rng, blocks, B, n):
 
 
 class Attribution:
-    def __init__(self, eng: Engine, ev0: Evaluation, thr: float, library, n_boot=100, seed=0, screen_R=20, log=None):
+    def __init__(self, eng: Engine, ev0: Evaluation, thr: float, library, n_boot=100, seed=0, screen_R=20, log=None,
+                 matched=None):
         self.eng, self.ev0, self.thr = eng, ev0, thr
+        self.matched = matched      # MatchedTests of the mean effects (None: the gap index only)
+        self.matched_summary = None
         self.library = list(library)
         self.rng = np.random.default_rng(seed + 7)
         self.boot = _resample(self.rng, np.arange(eng.frame.n_blocks), eng.frame.n_blocks, n_boot)
@@ -139,7 +149,9 @@ class Attribution:
         return FORMS[name].magnitude(self.eng.env, t.design, ev.fit.theta[idx[0]])
 
     # -- selection ----------------------------------------------------------------------------
-    def run(self, detected: bool):
+    def run(self, detected: bool, by_matched: bool = False):
+        """by_matched: the gap index is at its null level and only matched tests fired: the
+        attribution is then made on the matched evidence (:meth:`_run_matched`)."""
         eng, ev0 = self.eng, self.ev0
         results = {}
         testable = []
@@ -166,6 +178,15 @@ class Attribution:
             singles[name] = cand
 
         selected, current = [], ev0
+        if detected and by_matched:
+            selected, current, ambiguous = self._run_matched(results, singles, first_bad)
+            for n in selected:
+                results[n].selected, results[n].status = True, "selected"
+            for n in ambiguous:
+                results[n].status = "ambiguous"
+            self._magnitudes(results, current, selected)
+            self._whole_magnitudes(results, current, selected)
+            return results, selected, ambiguous, current
         if detected:
             remaining = [n for n in testable if n in singles]
             scores = {n: results[n].shrink for n in remaining}
@@ -200,6 +221,69 @@ class Attribution:
             self._conditional(results, current, selected)
         self._magnitudes(results, current, selected)
         return results, selected, ambiguous, current
+
+    def _run_matched(self, results, singles, bad):
+        """Attribution when only matched tests fired (the gap index is at its null level, so
+        its changes are noise): everything is measured on the matched evidence.
+
+        * shrink of an effect: the fraction of the fired tests' excess (sum of max(t, 0)^2 over
+          its null level) that adding its term removes (conditional tests); noise, clock and
+          mask effects do not change a mean pattern and get no shrink here;
+        * first: the effect removing the most of it; among those removing at least
+          TIE_FRACTION of the best one's, the one whose own test is the most significant;
+        * ambiguous: a fired effect that explains the first one's evidence away (the first's
+          test no longer fires given it): the data cannot tell them apart;
+        * further effects: those whose test still fires given the selected ones (most
+          significant first), up to MAX_EFFECTS.
+        """
+        mt = self.matched
+        fired = mt.fired()
+        ok = [n for n in fired if n in singles and n not in bad]
+        shr = {n: mt.shrink(fired, (n,)) for n in mt.names}
+        for name, r in results.items():
+            if not r.testable or r.evaluation is None:
+                continue
+            src = name if name in shr else FORMS[name].alias_of
+            r.shrink = shr.get(src, float("nan"))
+            r.shrink_ci = None
+        self.matched_summary = {"fired": fired, "level": mt.level, "tests": mt.summary()}
+        self.log(f"  matched tests fired: {', '.join(fired)}; shrink " +
+                 ", ".join(f"{n} {shr[n]:.2f}" for n in fired))
+        if not ok:
+            return [], self.ev0, []
+        # the effect that explains the most of the fired evidence; among those the conditional
+        # tests cannot rank (TIE_FRACTION of the best), the most significant test: its replicas
+        # searched the same settings, so a form with many (a step's 63 times) pays for them
+        best = max(shr[n] for n in ok)
+        tied = [n for n in ok if shr[n] >= TIE_FRACTION * best]
+        first = max(tied, key=lambda n: mt.result(n)["t"])
+        ambiguous = [n for n in ok if n != first and mt.result(first, (n,))["p"] >= mt.level]
+        for name in results:                       # same observable (cross_axis / misalignment)
+            if name != first and results[name].testable and (FORMS[name].alias_of == first
+                                                             or FORMS[first].alias_of == name):
+                ambiguous.append(name)
+        selected = [first]
+        while len(selected) < MAX_EFFECTS:
+            more = [n for n in mt.fired(given=tuple(selected), among=ok) if n not in ambiguous]
+            if not more:
+                break
+            selected.append(min(more, key=lambda n: mt.result(n, tuple(selected))["p"]))
+        cand = singles[first]
+        for n in selected[1:]:
+            cand = self.eng.extend(SimpleNamespace(cand=cand), n) or cand     # mean effects: a term
+        final = self.eng.evaluate(cand)
+        s_all = mt.shrink(fired, tuple(selected))
+        closed = not mt.fired(given=tuple(selected), among=fired)
+        self.matched_summary.update(shrink=s_all, closed=closed)
+        d_sel = mt.discrepancy(fired, tuple(selected))
+        ex = mt.discrepancy(fired) - len(fired) * NULL_LEVEL
+        for name in mt.names:
+            if name not in selected and results[name].evaluation is not None and ex > 0:
+                g = tuple(sorted(set(selected) | {name}))
+                results[name].shrink_given_selected = float((d_sel - mt.discrepancy(fired, g)) / ex)
+        self.log(f"  selected {', '.join(selected)} on the matched evidence (closes {s_all:.2f}"
+                 f"{', nothing left' if closed else ''}); ambiguous with {', '.join(ambiguous) or '-'}")
+        return selected, final, ambiguous
 
     def _round(self, rnd, current, remaining, scores, singles, results):
         """Best candidate of a selection round, re-scored with all replicas.
@@ -348,6 +432,26 @@ class Attribution:
                 r.magnitude_ci = {"value": centred_interval(r.magnitude["value"], np.array(vals)),
                                   "unit": r.magnitude.get("unit")}
 
+    def _whole_magnitudes(self, results, final, selected):
+        """Magnitudes of the selected mean effects refitted on all blocks (the held-out
+        evaluation fits each fold on half of them): near the detection limit, where the matched
+        tests work, half the data doubles the noise a magnitude's norm is biased up by. The
+        interval keeps its bootstrap spread, moved to the new point."""
+        eng = self.eng
+        terms = final.cand.terms
+        if not terms:
+            return
+        fit = fit_model(eng.frame, eng.base.fit.state, terms, final.valid, eng.base.sigma, iters=3)
+        for i, t in enumerate(terms):
+            r = results.get(t.name)
+            if r is None or t.name not in selected:
+                continue
+            mag = FORMS[t.name].magnitude(eng.env, t.design, fit.theta[i])
+            if r.magnitude_ci and r.magnitude and r.magnitude.get("value") is not None:
+                shift = mag["value"] - r.magnitude["value"]
+                r.magnitude_ci = {**r.magnitude_ci, "value": [v + shift for v in r.magnitude_ci["value"]]}
+            r.magnitude = mag
+
     def _estimated_ci(self, name, ev):
         eng = self.eng
         form = FORMS[name]
@@ -388,16 +492,23 @@ def complexity(name, cand, env) -> float:
     return float(len(p))
 
 
-def verdict(detected, g0, g_final, selected, thr, first_shrink):
+def verdict(detected, g0, g_final, selected, thr, first_shrink, matched=None):
     """no_gap; explained (the selected effects bring the held-out gap to its null level, or close
     at least EXPLAINED of it, and the first of them alone closes at least FIRST_ALONE);
-    partially_explained (they close at least PARTIAL); unexplained."""
+    partially_explained (they close at least PARTIAL); unexplained.
+
+    matched: (shrink, closed) on the matched evidence when only matched tests detected the gap
+    (closed: no fired test fires any more given the selected effects)."""
     if not detected:
         return "no_gap", float("nan")
-    s = gap.shrink(g0, g_final) if selected else 0.0
+    if matched is not None:
+        s, closed = matched
+        s = s if selected else 0.0
+    else:
+        s = gap.shrink(g0, g_final) if selected else 0.0
+        closed = g_final <= thr or (np.isfinite(s) and s >= EXPLAINED)
     if not selected:
         return "unexplained", s
-    closed = g_final <= thr or (np.isfinite(s) and s >= EXPLAINED)
     if closed and np.isfinite(first_shrink) and first_shrink >= FIRST_ALONE:
         return "explained", s
     if np.isfinite(s) and s >= PARTIAL:

@@ -60,6 +60,7 @@ class Evaluation:
     e_cf: np.ndarray | None = None           # cross-fitted residual (each block from the fold that did not fit it)
     inlier_cf: np.ndarray | None = None
     fits: list | None = None
+    rep_raw: np.ndarray | None = None        # replicas' channels before the fit's projection (keep_raw)
 
     # what the estimators of the next effects read (the held-out residual of every block)
     @property
@@ -162,10 +163,12 @@ class Engine:
         return ok
 
     # -- evaluation ---------------------------------------------------------------------------
-    def evaluate(self, cand: Candidate, in_sample=False, R=None) -> Evaluation:
+    def evaluate(self, cand: Candidate, in_sample=False, R=None, keep_raw=False) -> Evaluation:
         """Score a candidate. Cross-fitted by default: fitted on the even blocks and scored on the
         odd ones, and the other way round, so every block is scored by a fit that never saw it
-        (held-out) and no data are wasted. in_sample=True fits and scores on all samples."""
+        (held-out) and no data are wasted. in_sample=True fits and scores on all samples.
+        keep_raw: keep the replicas' unprojected channels (the matched tests project them
+        through other fits)."""
         frame, base = self.frame, self.base
         R = self.R if R is None else int(R)
         valid = base.valid & self._mask(cand, frame.m)[:, None]
@@ -183,16 +186,18 @@ class Engine:
         # effect calls the effect's large residuals "bursts"
         bursts = estimate_bursts(e[:, 0], valid[:, 0], base.sigma[0])
         real_bs = panel.block_stats(self.design, e, valid, frame.m, frame.t if frame.timestamps_real else None)
-        rep_bs, rep_e, rep_valid = self._replica_stats(cand, fits, folds, e, valid, bursts, R)
+        rep_bs, rep_e, rep_valid, raw = self._replica_stats(cand, fits, folds, e, valid, bursts, R)
         ref = None
         if any(n in CATCH_ALL for n in cand.estimated):
             plain = Candidate(cand.terms, {n: p for n, p in cand.estimated.items() if n not in CATCH_ALL})
-            ref_bs, _, _ = self._replica_stats(plain, fits, folds, e, valid, bursts, R)
+            ref_bs, _, _, _ = self._replica_stats(plain, fits, folds, e, valid, bursts, R)
             ref = np.array([panel.evaluate(self.design, bs, self.all_mult).arrays()[0] for bs in ref_bs])
         if not in_sample:              # the candidate carries the first fold's settings (magnitudes, reports)
             cand = Candidate(list(fits[0].terms), dict(cand.estimated))
         ev = self._score(cand, fits[0], valid, real_bs, rep_bs, rep_e, rep_valid, self.all_mult, ref)
         ev.e_cf, ev.inlier_cf, ev.fits = e, inlier, fits
+        if keep_raw:
+            ev.rep_raw = raw
         return ev
 
     def _choose(self, terms, valid, fit_mask):
@@ -240,7 +245,7 @@ class Engine:
         clocks = self._clock(cand, R)
         rep_bs = [panel.block_stats(d, rep_e[k], rep_valid[k], raw[k], clocks[k] if frame.timestamps_real else None)
                   for k in range(R)]
-        return rep_bs, rep_e, rep_valid
+        return rep_bs, rep_e, rep_valid, r
 
     def _score(self, cand, fit, valid, real_bs, rep_bs, rep_e, rep_valid, mult, ref=None):
         d = self.design

@@ -12,7 +12,7 @@ import pathlib
 import numpy as np
 
 HEADLINES = {
-    "no_gap": "NO GAP: the simulator reproduces this recording (gap index at its null level).",
+    "no_gap": "NO GAP: the simulator reproduces this recording (gap index at its null level, no matched test fired).",
     "explained": "EXPLAINED: the gap is closed by {effects}.",
     "partially_explained": "PARTLY EXPLAINED: {effects} close part of the gap; the rest is not in the library.",
     "unexplained": "UNEXPLAINED: there is a gap, and no effect of the library closes it.",
@@ -41,7 +41,14 @@ def text(diag, source="") -> str:
              + (f", dip {b['dip_deg']:.1f} deg" if b.get("dip_deg") is not None else ""))
     L.append(f"  gap index     : {_fmt(diag.gap_before)} (held-out; no-gap level 1, alarm above {_fmt(diag.threshold)})"
              + (f" -> {_fmt(diag.gap_after)} with {' + '.join(diag.selected)}" if diag.selected else ""))
-    if diag.verdict != "no_gap":
+    mt = info.get("matched_tests") or {}
+    if mt.get("fired"):
+        L.append(f"  matched tests : fired for {', '.join(mt['fired'])} (each at level {mt['level']:.2g})")
+    if diag.verdict != "no_gap" and info.get("detected_by") == "matched tests":
+        # the gap index is at its null level: shrinks are on the matched evidence
+        L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the fired matched evidence removed "
+                 "(the gap index alone is below its alarm)")
+    elif diag.verdict != "no_gap":
         L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the excess held-out gap closed")
     if diag.ambiguous_with:
         L.append(f"  ambiguous with: {', '.join(diag.ambiguous_with)} (the data cannot tell these apart)")
