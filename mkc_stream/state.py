@@ -51,6 +51,8 @@ class StreamConfig:
             raise ValueError(f"window {self.window} must hold at least n = {self.n} samples")
         if self.estep_every < 1:
             raise ValueError("estep_every must be >= 1")
+        if not (self.sigma_pull >= 0 and np.isfinite(self.sigma_pull)):
+            raise ValueError(f"sigma_pull must be a finite number >= 0; got {self.sigma_pull}")
         if not (0 < self.sigma_lo < self.sigma_hi) or not (0 < self.d_lo < self.d_hi):
             raise ValueError("bounds must satisfy 0 < lo < hi")
 

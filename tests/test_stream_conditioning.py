@@ -70,3 +70,9 @@ def test_a_burst_after_a_clean_stretch_is_down_weighted():
     X_w, Y_w, _ = est.window()
     ls = np.linalg.lstsq(X_w[:, 0, :], Y_w[:, 0], rcond=None)[0]
     assert np.abs(ls - theta).max() > 3 * np.abs(s.theta - theta).max()
+
+
+@pytest.mark.parametrize("pull", [-0.05, float("nan"), float("inf")])
+def test_a_bad_sigma_pull_is_refused(pull):
+    with pytest.raises(ValueError, match="sigma_pull"):
+        StreamingMKC(4, 1, sigma_pull=pull)

@@ -16,7 +16,7 @@ The last term is ours, not the paper's (pull = 0 is its ML): a prior p(sigma) ~ 
 induced pdf is Gaussian whatever sigma is, and the likelihood is flat to ~0.1 nat from sigma ~ 5
 to 1000 (Section III-D); a capped, warm-started BFGS then stops wherever its gradient first falls
 below gtol, so the stream's sigma wanders along the flat ridge and takes the calibration with it
-(a 1e-7 change of the input moved a real recording's calibration by 1e-3). A pull of 0.05 nat per
+(a 1e-7 change of the input moved a real recording's calibration by up to 2.8e-3). A pull of 0.05 nat per
 e-fold sends that ridge to the Gaussian end (sigma_hi), where the weights are 1 and the fit is
 plain least squares, and moves a real optimum (tens of nats deep once bursts are present) by
 ~pull / curvature, i.e. not visibly.
