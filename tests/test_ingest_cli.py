@@ -121,14 +121,20 @@ def test_ctrl_c_ends_cleanly_with_the_final_result(tmp_path):
     emu, pty = emulator("--protocol", "binary", "--rate", "1000", "--duration", "60", "--sweep-s", "0.6")
     live = subprocess.Popen([sys.executable, "-m", "mkc_stream", "live", "--port", pty, "--protocol", "binary",
                              "--out", str(tmp_path / "r.csv"), "--json", "-", "--progress"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (tmp_path / "r.csv").exists():
             time.sleep(0.1)                                     # the port is open once the recording exists
         time.sleep(1.5)
         live.send_signal(signal.SIGINT)
-        out, err = live.communicate(timeout=30)
+        try:
+            out, err = live.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            live.send_signal(signal.SIGABRT)             # faulthandler prints every thread's stack
+            out, err = live.communicate(timeout=30)
+            pytest.fail(f"live still running 30 s after Ctrl-C; its stderr ends:\n{err[-6000:]}")
     finally:
         stop(emu)
     obj = json.loads(out)

@@ -314,3 +314,46 @@ def test_run_ctrl_c_ends_cleanly(tmp_path):
     w = RecordingWriter(tmp_path / "int.csv")
     res = Run(ListSource(samples_at(range(30)), fail=KeyboardInterrupt()), Cal(), w).run()
     assert res.ended == "interrupted" and len(read_recording(tmp_path / "int.csv")) == 30
+
+
+class SigintInUpdate(Cal):
+    """A calibrator that receives Ctrl-C in the middle of its second update."""
+
+    def __init__(self):
+        super().__init__()
+        self.finished = 0
+
+    def update(self, mags):
+        self.batches.append(len(mags))
+        if len(self.batches) == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)                     # the handler runs here, mid-update
+        self.finished += len(mags)               # an update that was cut short never gets here
+        return []
+
+
+def test_ctrl_c_stops_between_updates_never_inside_one(tmp_path):
+    cal = SigintInUpdate()
+    w = RecordingWriter(tmp_path / "int.csv")
+    before = signal.getsignal(signal.SIGINT)
+    run = Run(ListSource(samples_at(range(10_000)), per_read=50), cal, w, feed_every_s=0.0)
+    res = run.run()
+    assert res.ended == "interrupted" and 100 <= res.samples < 10_000
+    assert cal.finished == sum(cal.batches) == res.samples          # every update ran to its end
+    assert len(read_recording(tmp_path / "int.csv")) == res.samples
+    assert signal.getsignal(signal.SIGINT) is before                 # the caller's handler is back
+
+
+def test_a_second_ctrl_c_interrupts_a_stuck_loop(tmp_path):
+    class Stuck(Cal):
+        def update(self, mags):
+            self.batches.append(len(mags))
+            if len(self.batches) == 1:
+                os.kill(os.getpid(), signal.SIGINT)      # the polite request ...
+                time.sleep(0.01)
+                os.kill(os.getpid(), signal.SIGINT)      # ... and the one that insists
+                time.sleep(1.0)                          # (never slept through: interrupted)
+            return []
+
+    res = Run(ListSource(samples_at(range(1000)), per_read=50), Stuck(), feed_every_s=0.0).run()
+    assert res.ended == "interrupted" and res.samples == 50

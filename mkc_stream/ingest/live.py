@@ -6,10 +6,17 @@ keeps the Python overhead per sample small. The loop ends at the end of a file, 
 ``max_samples`` samples or ``duration`` seconds (wall clock for a device, sample time for a
 file), on Ctrl-C, or when the source is lost; in every case what was read is fed, recorded and
 flushed before it returns.
+
+Ctrl-C is a request, not an exception: on the main thread the loop takes SIGINT over and stops
+at the top of its next pass (within one read timeout and one calibrator update), so the
+interrupt never lands half-way through an update, a recorder write or a port close. A second
+Ctrl-C raises KeyboardInterrupt as usual, for a loop that is stuck.
 """
 from __future__ import annotations
 
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass
 
@@ -57,6 +64,13 @@ class Run:
         self.t_first: float | None = None
         self.t_last: float | None = None
         self._pending: list = []
+        self.stop_requested = False
+
+    def request_stop(self, *_):
+        """Ask the loop to end at its next pass (the SIGINT handler; callable from any thread)."""
+        self.stop_requested = True
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.default_int_handler)    # a second Ctrl-C interrupts
 
     # -- feeding ---------------------------------------------------------------------------
     def _feed(self):
@@ -87,8 +101,14 @@ class Run:
         last_feed = last_status = start
         n_status = 0
         ended, message = "end of stream", None
+        previous_handler = None
+        if threading.current_thread() is threading.main_thread():
+            previous_handler = signal.signal(signal.SIGINT, self.request_stop)
         try:
             while True:
+                if self.stop_requested:
+                    ended = "interrupted"
+                    break
                 now = self.clock()
                 if self.duration is not None and not self.sample_time and now - start >= self.duration:
                     ended = "duration"
@@ -130,6 +150,8 @@ class Run:
         except SourceLost as exc:
             ended, message = "source lost", str(exc)
         finally:
+            if previous_handler is not None:
+                signal.signal(signal.SIGINT, previous_handler)
             try:
                 self._feed()
             finally:
