@@ -101,8 +101,8 @@ class Run:
         last_feed = last_status = start
         n_status = 0
         ended, message = "end of stream", None
-        previous_handler = None
-        if threading.current_thread() is threading.main_thread():
+        on_main = threading.current_thread() is threading.main_thread()
+        if on_main:     # (getsignal may be None: a handler not set from Python; restored as-is)
             previous_handler = signal.signal(signal.SIGINT, self.request_stop)
         try:
             while True:
@@ -150,8 +150,9 @@ class Run:
         except SourceLost as exc:
             ended, message = "source lost", str(exc)
         finally:
-            if previous_handler is not None:
-                signal.signal(signal.SIGINT, previous_handler)
+            if on_main:
+                signal.signal(signal.SIGINT, previous_handler if previous_handler is not None
+                              else signal.default_int_handler)
             try:
                 self._feed()
             finally:
