@@ -65,8 +65,8 @@ RANGES = {"temperature_offset": (1.0, 50.0),         # nT/degC
 #: A trial is "typical" (counted in the named-first lines) unless an oracle that knows the
 #: injected signal exactly up to its amplitude could not detect it: a one-parameter matched
 #: filter on the norm and dip channels (after what the ellipsoid and dip refit absorb) with
-#: white noise of each channel's simulated level (the dip channel's includes the accelerometer's
-#: direction error, see oracle_snr) detects at 1% false alarm with 90% power only when its
+#: each channel's simulated noise (the dip channel's includes the accelerometer's direction
+#: error, whitened by its spectrum: see oracle_snr) detects at 1% false alarm with 90% power only when its
 #: signal-to-noise ratio is at least z_0.99 + z_0.90 = 2.33 + 1.28 = 3.6. Below that, no
 #: diagnoser could name the effect reliably from 10^4 samples; those trials are listed and
 #: counted separately (with the magnitude at which the oracle would reach 3.6), not dropped.
