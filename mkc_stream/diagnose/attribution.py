@@ -335,12 +335,12 @@ class Attribution:
         return best_det, full[best_det]
 
     def _walk_like(self, ev):
-        """A coloured noise with no fast component and a correlation time longer than the
+        """A coloured noise whose components all have correlation times longer than the
         recording is a random walk over it: its increments grow linearly at every lag the
         recording holds (the variogram of the blocks' apparent hard iron bends by less than
         1 - e^-1 at the longest lag), so the one-parameter walk is the simpler equivalent."""
-        p = ev.cand.estimated.get("colored_noise", {})
-        return not p.get("sigma", 0.0) > 0 and p.get("tau2", 0.0) >= self.eng.frame.duration
+        comps = [c for c in ev.cand.estimated.get("colored_noise", {}).get("components", ()) if c[0] > 0]
+        return bool(comps) and min(t for _, t in comps) >= self.eng.frame.duration
 
     def _step(self, full, name):
         return gap.shrink(self._round_ref.G, full[name].G)
@@ -488,7 +488,7 @@ def complexity(name, cand, env) -> float:
         return form.k + np.log2(n_opt)
     p = cand.estimated.get(name, {})
     if name == "colored_noise":        # two parameters per Gauss-Markov component it actually has
-        return 2.0 * sum(1 for k in ("sigma", "sigma2") if p.get(k, 0.0) > 0)
+        return 2.0 * sum(1 for s_, _ in p.get("components", ()) if s_ > 0)
     return float(len(p))
 
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy.optimize import nnls
 
 from ..sim.effects import EFFECTS
 from ..sim.effects.base import first_order_lag
@@ -374,21 +375,90 @@ def _acov(z, inl, slices, K):
     return s, np.round(c)
 
 
+COLORED_GRID = 40           # correlation times tried, from one sample to COLORED_SLOWEST blocks
+COLORED_SLOWEST = 64
+
+
 def _colored_estimate(env, ctx, mult):
-    """Two Gauss-Markov components: a fast one from the residual's autocovariance within blocks
-    (its excess over the replicas'), and a slow one (correlation time of minutes, which looks
-    like a random walk inside a block) from how the blocks' apparent hard iron differs with
-    their distance apart."""
-    slow = _colored_slow(env, ctx, mult)
-    fast = _colored_fast(env, ctx, mult, slow)
-    if fast is None and slow is None:
+    """Two Gauss-Markov components (sigma per raw axis, tau), fitted jointly to two views of the
+    residual's excess over the replicas':
+
+    * within blocks, its lag autocovariance with each block's mean removed (as the panel sees
+      it): a component adds sigma^2 (pc_l e^-l/tau - D(tau)) at lag l, pc_l the norm channel's
+      share of a raw-frame noise over that lag and D(tau) the variance of its block mean in the
+      norm channel (:func:`_block_mean_share_norm`);
+    * between blocks, the variogram of the blocks' apparent hard iron at block lags k:
+      6 sigma^2 (share(u) - (1 - e^-u)^2 e^-(k-1)u / u^2), u = L / tau (block means of the process).
+
+    Both taus come from one grid (one sample to 64 blocks; every pair tried, amplitudes >= 0 by
+    NNLS). One fit for both matters: each view also holds the component the other one is about
+    (a fast one sets a floor under the variogram, a slow one leaves part of itself inside the
+    blocks); fitted one after the other, each took the other's share, and a fast component
+    bounded to the block's lags could not follow a noise of a few seconds. Each view counts once
+    (its points weighted by 1/sqrt(count)). The effect enters only when one view shows an
+    excess (3 replica sd at lag 1, or at the variogram's longest lag)."""
+    frame = env.frame
+    acv = _within_block_excess(env, ctx, mult)
+    vgm = _variogram_excess(env, ctx, mult)
+    fast_seen = acv is not None and acv[1][1] > 3 * acv[2][1]
+    slow_seen = vgm is not None and vgm[1][-1] > 3 * vgm[2][-1]
+    if not (fast_seen or slow_seen):
         return None
-    out = {"sigma": 0.0, "tau": 1.0, "sigma2": 0.0, "tau2": 1.0}
-    if fast is not None:
-        out.update(sigma=fast[0], tau=fast[1])
-    if slow is not None:
-        out.update(sigma2=slow[0], tau2=slow[1])
-    return out
+    L = frame.duration / frame.n_blocks
+    data = []
+
+    def views(tau):
+        out = []
+        if acv is not None:
+            lags, ex, sd, _, pc, sig = acv
+            out.append((pc * np.exp(-lags / tau) - _block_mean_share_norm(env, mult, tau)) / sig ** 2 / sd
+                       / np.sqrt(lags.size))
+        if vgm is not None:
+            k, ex, sd = vgm
+            u = L / tau
+            out.append(6.0 * (block_mean_share(L, tau) - (1 - np.exp(-u)) ** 2 * np.exp(-(k - 1) * u) / (u * u))
+                       / sd / np.sqrt(k.size))
+        return np.concatenate(out)
+    if acv is not None:
+        data.append(acv[1] / acv[2] / np.sqrt(acv[0].size))
+    if vgm is not None:
+        data.append(vgm[1] / vgm[2] / np.sqrt(vgm[0].size))
+    taus = np.geomspace(frame.dt0, COLORED_SLOWEST * L, COLORED_GRID)
+    cols = [views(t) for t in taus]
+    y = np.concatenate(data)
+    best = None
+    for i in range(taus.size):
+        for j in range(i + 1, taus.size):
+            v, r = nnls(np.stack([cols[i], cols[j]], axis=1), y)
+            if best is None or r < best[0]:
+                best = (r, (taus[i], taus[j]), v)
+    comps = [[float(np.sqrt(a)), float(t)] for a, t in zip(best[2], best[1]) if a > 0]
+    return {"components": comps} if comps else None
+
+
+def _block_mean_share_norm(env, mult, tau):
+    """Variance of a block's mean of the norm channel's share of a raw-frame Gauss-Markov noise
+    (unit variance per axis, correlation time tau), averaged over the blocks:
+    (1/L^2) sum_t sum_s (S^T v_t).(S^T v_s) e^-|t-s| dt/tau. Removing each block's mean takes
+    this off the norm residual's autocovariance at every lag. It depends on how far the sensor
+    turns within a block: a slow noise is nearly constant in the raw frame, but a turning sensor
+    sees it from many directions, so its mean over the block is small."""
+    from scipy.signal import lfilter
+
+    key = ("bshare", round(float(tau), 9), tuple(np.flatnonzero(mult > 0)))
+    if key not in env.cache:
+        JS = env.base.fit.v @ env.base.fit.state.S
+        rho = float(np.exp(-env.frame.dt0 / tau))
+        vals = []
+        for sl, w in zip(env.frame.block_slices(), mult):
+            if w <= 0 or sl.stop - sl.start < 2:
+                continue
+            X = JS[sl]
+            fwd = lfilter([1.0], [1.0, -rho], X, axis=0)
+            bwd = lfilter([1.0], [1.0, -rho], X[::-1], axis=0)[::-1]
+            vals.append(np.sum(X * (fwd + bwd - X)) / X.shape[0] ** 2)
+        env.cache[key] = float(np.mean(vals)) if vals else 0.0
+    return env.cache[key]
 
 
 def _projection_acov(env, K):
@@ -402,42 +472,36 @@ def _projection_acov(env, K):
     return env.cache[key]
 
 
-def _colored_fast(env, ctx, mult, slow=None):
+def block_mean_share(L, tau):
+    """Variance of the mean over a window of length L of a Gauss-Markov process with correlation
+    time tau, per unit process variance: 2 (e^-u - 1 + u) / u^2, u = L / tau (the blocks'
+    apparent hard iron, in the variogram view; what the norm channel's block means take is
+    :func:`_block_mean_share_norm`)."""
+    u = np.maximum(np.asarray(L, dtype=float) / np.asarray(tau, dtype=float), 1e-9)
+    return np.where(u < 1e-4, 1.0 - u / 3.0, 2.0 * (np.exp(-u) - 1.0 + u) / (u * u))
+
+
+def _within_block_excess(env, ctx, mult):
+    """(lags s, excess, replica sd, block length s, pc, sigma) of the norm residual's lag
+    autocovariance within blocks (each block's mean removed), over the replicas', lags 0..K."""
     frame, base = env.frame, env.base
     slices = [sl for sl, w in zip(frame.block_slices(), mult) if w > 0]
     Lb = min(sl.stop - sl.start for sl in slices)
     K = int(max(4, min(200, Lb // 3)))
     sig = base.sigma[0]
     s, c = _acov(ctx.e[:, 0] / sig, ctx.inlier[:, 0], slices, K)
-    real = s[1:] / np.maximum(c[1:], 1)
     reps = []
     for i in range(ctx.rep_e.shape[0]):
         inl = ctx.rep_valid[i, :, 0] & (np.abs(ctx.rep_e[i, :, 0]) < 4 * sig)
         sr, cr = _acov(ctx.rep_e[i, :, 0] / sig, inl, slices, K)
-        reps.append(sr[1:] / np.maximum(cr[1:], 1))
+        reps.append(sr / np.maximum(cr, 1))
     reps = np.array(reps)
-    ex = real - reps.mean(axis=0)
-    pc = np.maximum(_projection_acov(env, K), 1e-3)
-    lags = np.arange(1, K + 1) * frame.dt0
-    if slow is not None:                 # what the slow component puts into the norm channel
-        s2, tau2 = slow
-        ex = ex - (s2 / sig) ** 2 * pc * np.exp(-lags / tau2)
-    sd1 = reps[:, 0].std(ddof=1) if reps.shape[0] > 2 else 1.0 / np.sqrt(c[1])
-    if not ex[0] > 3 * sd1:
+    if reps.shape[0] < 3:
         return None
-    y = ex / pc                          # the raw-frame autocovariance the norm channel saw
-    stop = np.flatnonzero(y <= 0)
-    n_pos = int(stop[0]) if stop.size else y.size
-    if n_pos >= 2:
-        k = np.arange(1, n_pos + 1)
-        w = y[:n_pos]
-        A = np.stack([np.ones(n_pos), k], axis=1) * w[:, None]
-        coef = np.linalg.lstsq(A, np.log(y[:n_pos]) * w, rcond=None)[0]
-        amp, phi = float(np.exp(coef[0])), float(np.exp(coef[1]))
-    else:
-        amp, phi = float(y[0]), 0.5
-    phi = min(max(phi, 1e-3), 1 - 1e-4)
-    return float(np.sqrt(max(amp, 0.0))) * sig, float(min(-frame.dt0 / np.log(phi), frame.duration / 4))
+    pc = np.concatenate([[1.0], np.maximum(_projection_acov(env, K), 1e-3)])
+    ex = s / np.maximum(c, 1) - reps.mean(axis=0)
+    sd = np.maximum(reps.std(axis=0, ddof=1), 1e-9)
+    return np.arange(K + 1) * frame.dt0, ex, sd, Lb * frame.dt0, pc, sig
 
 
 def _variogram(env, bs, mult, kmax):
@@ -452,44 +516,24 @@ def _variogram(env, bs, mult, kmax):
     return g
 
 
-def _colored_slow(env, ctx, mult, kmax=8):
+def _variogram_excess(env, ctx, mult, kmax=8):
+    """(block lags, excess, replica sd) of the variogram of the blocks' apparent hard iron."""
     g = _variogram(env, ctx.real_bs, mult, kmax)
     gr = np.array([_variogram(env, bs, mult, kmax) for bs in ctx.rep_bs])
     if gr.shape[0] < 3 or not np.isfinite(gr).all() or not np.isfinite(g).all():
         return None
-    ex = g - gr.mean(axis=0)
-    sd = gr.std(axis=0, ddof=1)
-    if not ex[-1] > 3 * sd[-1]:
-        return None
-    L = env.frame.duration / env.frame.n_blocks
-    k = np.arange(1, kmax + 1)
-    best = None
-    for tau in L * np.geomspace(0.5, 64, 25):
-        x = 1.0 - np.exp(-k * L / tau)
-        A = float(x @ ex / (x @ x))
-        r = float(np.sum((ex - A * x) ** 2))
-        if A > 0 and (best is None or r < best[0]):
-            best = (r, A, tau)
-    if best is None:
-        return None
-    _, A, tau = best
-    u = L / tau
-    f = 2.0 * (np.exp(-u) - 1.0 + u) / (u * u)      # variance of a block mean of the process, per sigma^2
-    return float(np.sqrt(A / (6.0 * f))), float(tau)
+    return np.arange(1, kmax + 1), g - gr.mean(axis=0), np.maximum(gr.std(axis=0, ddof=1), 1e-30)
 
 
 def _colored():
     def replica(env, p):
-        out = []
-        for s_, t_ in ((p["sigma"], p["tau"]), (p["sigma2"], p["tau2"])):
-            if s_ > 0:
-                out.append((EFFECTS["colored_noise"], {"sigma": s_, "tau": t_}))
-        return out
+        return [(EFFECTS["colored_noise"], {"sigma": s_, "tau": t_}) for s_, t_ in p["components"] if s_ > 0]
 
     def mag(env, p):
-        val, unit = env.field_unit(float(np.hypot(p["sigma"], p["sigma2"])))
-        return {"value": val, "unit": unit, "components": [[p["sigma"], p["tau"]], [p["sigma2"], p["tau2"]]],
-                "meaning": "standard deviation per axis (fast and slow Gauss-Markov components: [sigma, tau s])"}
+        comps = p["components"]
+        val, unit = env.field_unit(float(np.sqrt(sum(s_ ** 2 for s_, _ in comps))))
+        return {"value": val, "unit": unit, "components": [list(c) for c in comps],
+                "meaning": "standard deviation per axis (Gauss-Markov components: [sigma, tau s])"}
     return EstimatedForm("colored_noise", "noise", _colored_estimate, replica, mag)
 
 
