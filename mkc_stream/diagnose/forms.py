@@ -410,11 +410,11 @@ def _colored_estimate(env, ctx, mult):
     def views(tau):
         out = []
         if acv is not None:
-            lags, ex, sd, _, pc, sig = acv
+            lags, _, sd, pc, sig = acv
             out.append((pc * np.exp(-lags / tau) - _block_mean_share_norm(env, mult, tau)) / sig ** 2 / sd
                        / np.sqrt(lags.size))
         if vgm is not None:
-            k, ex, sd = vgm
+            k, _, sd = vgm
             u = L / tau
             out.append(6.0 * (block_mean_share(L, tau) - (1 - np.exp(-u)) ** 2 * np.exp(-(k - 1) * u) / (u * u))
                        / sd / np.sqrt(k.size))
@@ -482,7 +482,7 @@ def block_mean_share(L, tau):
 
 
 def _within_block_excess(env, ctx, mult):
-    """(lags s, excess, replica sd, block length s, pc, sigma) of the norm residual's lag
+    """(lags s, excess, replica sd, pc, sigma) of the norm residual's lag
     autocovariance within blocks (each block's mean removed), over the replicas', lags 0..K."""
     frame, base = env.frame, env.base
     slices = [sl for sl, w in zip(frame.block_slices(), mult) if w > 0]
@@ -501,7 +501,7 @@ def _within_block_excess(env, ctx, mult):
     pc = np.concatenate([[1.0], np.maximum(_projection_acov(env, K), 1e-3)])
     ex = s / np.maximum(c, 1) - reps.mean(axis=0)
     sd = np.maximum(reps.std(axis=0, ddof=1), 1e-9)
-    return np.arange(K + 1) * frame.dt0, ex, sd, Lb * frame.dt0, pc, sig
+    return np.arange(K + 1) * frame.dt0, ex, sd, pc, sig
 
 
 def _variogram(env, bs, mult, kmax):
