@@ -55,23 +55,24 @@ def test_blind_benchmark_full(full_score):
     assert S["false_alarm_rate"] <= 0.05
     assert S["named_first"] >= 0.9
     assert S["shrink_correct_ge_0.7"] >= 0.9
-    assert S["removed_unexplained_or_partial"] >= 0.7 and S["removed_wrong_claimed"] <= 0.2
+    assert S["removed_unexplained_or_partial"] >= 0.7
     assert S["magnitude_rel_error_median"] <= 0.2
     assert S["seconds_median"] <= 60
 
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): with magnitudes over the issue's whole "
-                                       "realistic ranges, named first per effect >= 80% fails for colored_noise 3/4, "
-                                       "bias_random_walk 3/4, latency 3/4 (overall 60/63 = 95.2%, met); pair coverage "
-                                       "9/12 = 75% (a 3.4 nT/degC offset under a ramp at oracle SNR 3.9, a 0.4 deg "
-                                       "cross-axis, a slow Gauss-Markov noise left unexplained); best wrong effect "
-                                       "<= 0.3 in 42%; each measured against 90%; strict, so it fails loudly once "
-                                       "they are met")
+                                       "realistic ranges, named first per effect >= 80% fails for colored_noise 2/4 "
+                                       "and latency 3/4 (overall 60/63 = 95.2%, met); pair coverage 10/12 = 83% (a "
+                                       "3.4 nT/degC offset under a ramp at oracle SNR 3.9, a 0.4 deg cross-axis); "
+                                       "best wrong effect <= 0.3 in 42%; each measured against 90%; a wrong effect "
+                                       "claimed for 4/15 = 27% of the removed-effect trials against 20%; strict, so "
+                                       "it fails loudly once they are met")
 def test_blind_benchmark_unmet_lines(full_score):
     S = full_score
     assert min(S["named_first_per_effect"].values()) >= 0.8
     assert S["pair_truth_in_set"] >= 0.9 and S["best_wrong_le_0.3"] >= 0.9
+    assert S["removed_wrong_claimed"] <= 0.2
 
 
 def test_matched_snr_whitens_coloured_noise():

@@ -114,6 +114,13 @@ def estimate_bursts(e, valid, sigma):
     x = np.where(valid, e, np.nan)
     fill = np.where(np.isfinite(x), x, np.nanmedian(x) if np.isfinite(x).any() else 0.0)
     dev = e - median_filter(fill, size=min(BURST_WINDOW, max(3, e.size // 4 * 2 + 1)), mode="nearest")
+    # 4 of the larger of sigma (the kernel's white core) and the deviations' own robust spread:
+    # a coloured noise a few times the core turns with the sensor faster than the running
+    # median follows, and its peaks are not bursts (counted as bursts, they were put into every
+    # replica on top of the noise that made them)
+    d = dev[valid]
+    spread = 1.4826 * float(np.median(np.abs(d - np.median(d)))) if d.size else 0.0
+    sigma = max(float(sigma), spread)
     out = valid & (np.abs(dev) > 4.0 * sigma)
     e = dev
     idx = np.flatnonzero(out)
