@@ -398,8 +398,9 @@ def _colored_estimate(env, ctx, mult):
     (its points weighted by 1/sqrt(count)). The effect enters only when one view shows an
     excess (3 replica sd at lag 1, or at the variogram's longest lag)."""
     frame = env.frame
-    acv = _within_block_excess(env, ctx, mult)
-    vgm = _variogram_excess(env, ctx, mult)
+    samples = _noise_samples(env, ctx)
+    acv = _within_block_excess(env, samples, mult)
+    vgm = _variogram_excess(env, samples, mult)
     fast_seen = acv is not None and acv[1][1] > 3 * acv[2][1]
     slow_seen = vgm is not None and vgm[1][-1] > 3 * vgm[2][-1]
     if not (fast_seen or slow_seen):
@@ -481,15 +482,16 @@ def block_mean_share(L, tau):
     return np.where(u < 1e-4, 1.0 - u / 3.0, 2.0 * (np.exp(-u) - 1.0 + u) / (u * u))
 
 
-def _within_block_excess(env, ctx, mult):
+def _within_block_excess(env, samples, mult):
     """(lags s, excess, replica sd, pc, sigma) of the norm residual's lag
-    autocovariance within blocks (each block's mean removed), over the replicas', lags 0..K."""
+    autocovariance within blocks (each block's mean removed), over the replicas', lags 0..K;
+    samples from :func:`_noise_samples`."""
     frame, base = env.frame, env.base
     slices = [sl for sl, w in zip(frame.block_slices(), mult) if w > 0]
     Lb = min(sl.stop - sl.start for sl in slices)
     K = int(max(4, min(200, Lb // 3)))
     sig = base.sigma[0]
-    real, reps_in = _noise_samples(env, ctx)
+    real, reps_in = samples
     s, c = _acov(real[0] / sig, real[1], slices, K)
     reps = []
     for z, inl in reps_in:
@@ -556,9 +558,10 @@ def _variogram(o, mult, kmax):
     return g
 
 
-def _variogram_excess(env, ctx, mult, kmax=8):
-    """(block lags, excess, replica sd) of the variogram of the blocks' apparent hard iron."""
-    real, reps = _noise_samples(env, ctx)
+def _variogram_excess(env, samples, mult, kmax=8):
+    """(block lags, excess, replica sd) of the variogram of the blocks' apparent hard iron;
+    samples from :func:`_noise_samples`."""
+    real, reps = samples
     g = _variogram(_offsets(env, *real), mult, kmax)
     gr = np.array([_variogram(_offsets(env, *r), mult, kmax) for r in reps])
     if gr.shape[0] < 3 or not np.isfinite(gr).all() or not np.isfinite(g).all():
