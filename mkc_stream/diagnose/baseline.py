@@ -118,9 +118,8 @@ def estimate_bursts(e, valid, sigma):
     # a coloured noise a few times the core turns with the sensor faster than the running
     # median follows, and its peaks are not bursts (counted as bursts, they were put into every
     # replica on top of the noise that made them)
-    d = dev[valid]
-    spread = 1.4826 * float(np.median(np.abs(d - np.median(d)))) if d.size else 0.0
-    sigma = max(float(sigma), spread)
+    spread = robust_sd(dev[valid])
+    sigma = max(float(sigma), spread if np.isfinite(spread) else 0.0)
     out = valid & (np.abs(dev) > 4.0 * sigma)
     e = dev
     idx = np.flatnonzero(out)

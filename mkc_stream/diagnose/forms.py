@@ -27,6 +27,7 @@ from scipy.optimize import nnls
 from ..sim.effects import EFFECTS
 from ..sim.effects.base import first_order_lag
 from ..sim.trajectory import moving_average
+from .baseline import robust_sd
 
 UNIT_TO_UT = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "T": 1e6, "G": 100.0, "gauss": 100.0, "Gauss": 100.0, "mG": 0.1}
 F_REF_UT = 50.0
@@ -515,14 +516,14 @@ def _noise_samples(env, ctx):
     own residual (the same rule for each). Not the panel's 4 sigma of the baseline's white core:
     a slow noise a few times that core crosses it at its peaks (14% of the samples for 0.28 uT
     against 0.094 uT), and what is left of it is biased towards zero (on 8 simulated
-    recordings of 0.11-0.30 uT its amplitude came out 7-45% low). Bursts, many sigma out, are still cut; so are, in the replicas, the bursts that
-    the baseline made of such a noise's peaks."""
+    recordings of 0.11-0.30 uT its amplitude came out 7-45% low). Bursts, many sigma out, are
+    still cut; so are, in the replicas, the bursts that the baseline made of such a noise's
+    peaks."""
     sig = float(env.base.sigma[0])
 
     def cut(e, ok):
-        x = e[ok]
-        scale = 1.4826 * np.median(np.abs(x - np.median(x))) if x.size else 0.0
-        return e, ok & (np.abs(e) < NOISE_CUT * max(sig, float(scale)))
+        scale = robust_sd(e[ok])
+        return e, ok & (np.abs(e) < NOISE_CUT * max(sig, scale if np.isfinite(scale) else 0.0))
     real = cut(ctx.e[:, 0], ctx.valid[:, 0])
     reps = [cut(ctx.rep_e[i, :, 0], ctx.rep_valid[i, :, 0]) for i in range(ctx.rep_e.shape[0])]
     return real, reps
