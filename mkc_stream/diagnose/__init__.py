@@ -7,7 +7,9 @@ timestamps, directions and aux signals many times, compares a fixed panel of sta
 (:mod:`.panel`) as calibrated z-scores summarised by a gap index (about 1 when the simulator
 matches; :mod:`.gap`), runs one matched test per deterministic effect of the library (a small
 slow effect the omnibus index cannot see; :mod:`.matched`), and attributes the gap to effects
-of the library on held-out time blocks (:mod:`.attribution`). ``Diagnosis.to_json()`` is the
+of the library on held-out time blocks (:mod:`.attribution`), and calls an explanation complete
+only if the residual no longer follows any recorded aux signal (:mod:`.completeness`; else
+"partially explained", naming the signal). ``Diagnosis.to_json()`` is the
 object of spec/machine-output.md; :mod:`.report` writes the human report and plots.
 """
 from __future__ import annotations
@@ -112,6 +114,7 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     from . import gap
     from .attribution import Attribution, verdict
     from .baseline import fit_baseline
+    from .completeness import aux_left
     from .engine import Candidate, Engine
     from .frame import prepare
     from .matched import MatchedTests, mean_effects
@@ -157,6 +160,13 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     ms = att.matched_summary
     v, s = verdict(detected, ev0.G, final.G, selected, thr0, first if first is not None else float("nan"),
                    matched=(ms.get("shrink", 0.0), ms.get("closed", False)) if by_matched else None)
+    # an explanation that leaves a dependence on a recorded aux signal is not complete (and a
+    # partial one says which signal the rest follows)
+    left = aux_left(eng, final, selected) if v in ("explained", "partially_explained") else {}
+    still = sorted((a for a, r in left.items() if r["fired"]), key=lambda a: -left[a]["t"])
+    if still:
+        log(f"  the residual still follows {', '.join(still)} given {' + '.join(selected)}")
+        v = "partially_explained"
     ordered = sorted(results.values(), key=lambda r: (not r.testable, -(r.shrink if r.shrink is not None
                                                                           and np.isfinite(r.shrink) else -1e9)))
     fam = eng.gi.family_scores(ev0.z, ev0.weights) / eng.gi.norm
@@ -171,6 +181,7 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
         "detected_by": ("gap index" if by_gap else "matched tests" if by_matched else None),
         "matched_tests": {"level": mt.level, "fired": fired, "tests": mt.summary(),
                           **({k: ms[k] for k in ("shrink", "closed") if k in ms} if ms else {})},
+        "aux_left": {"checked": bool(left), "tests": left, "still_followed": still},
         "aux_used": list(frame.aux), "aux_ignored": frame.aux_notes, "bad_rows": frame.bad_rows,
     }
     return Diagnosis(verdict=v, gap_before=ev0.G, gap_after=final.G if selected else ev0.G,

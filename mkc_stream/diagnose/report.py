@@ -50,6 +50,10 @@ def text(diag, source="") -> str:
                  "(the gap index alone is below its alarm)")
     elif diag.verdict != "no_gap":
         L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the excess held-out gap closed")
+    left = info.get("aux_left") or {}
+    if left.get("still_followed"):
+        ts = ", ".join(f"{a} (t = {left['tests'][a]['t']:.1f})" for a in left["still_followed"])
+        L.append(f"  not complete  : given {' + '.join(diag.selected)}, the residual still follows {ts}")
     if diag.ambiguous_with:
         L.append(f"  ambiguous with: {', '.join(diag.ambiguous_with)} (the data cannot tell these apart)")
     L.append("")
