@@ -206,8 +206,8 @@ class Attribution:
                 current = ev_best
                 remaining.remove(name)
                 self.log(f"  selected {name}: gap {current.G:.3f}")
-                if current.G <= self.thr:
-                    break
+                if current.G <= self.thr or len(selected) >= MAX_EFFECTS:
+                    break           # (a screen for a round that will not run costs ~10 s)
                 rnd += 1
                 rs = self.screen(current, remaining, self.screen_R)
                 scores = {n: rs[n][2] for n in rs}
