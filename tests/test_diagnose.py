@@ -268,8 +268,7 @@ def test_throttle_standing_in_for_a_removed_current_effect_is_only_partial(traje
     brings the gap index to its null level, but the other loads' share stays in the residual.
     The completeness test (residual against each aux signal, given the selected effects) sees
     it: "partially explained", naming the current (and the voltage, which sags with it), not
-    "explained". Before that test the
-    verdict was "explained" by throttle_hard_iron."""
+    "explained". Before that test the verdict was "explained" by throttle_hard_iron."""
     eff = [("current_hard_iron", dict(zip(("kx", "ky", "kz"), 0.02 * np.array([0.6, -0.64, 0.48]))))]
     rec = simulate(trajectory, SensorModel(noise=0.1, burst_fraction=0.01), effects=eff, seed=12).recording
     d = diagnose(rec, exclude=["current_hard_iron"], replicas=24)
