@@ -214,6 +214,23 @@ def test_block_mean_shares_match_their_double_sums():
     assert _block_mean_share_norm(env, np.ones(2), 80.0) < 0.5 * block_mean_share(n * dt, 80.0)
 
 
+def test_white_share_of_a_gauss_markov_noise_is_what_third_differences_read():
+    """colored_white_share (the part of a Gauss-Markov noise the baseline's third-difference
+    white-noise estimate holds) against a simulated AR(1): var(d3 x) / (20 var x)."""
+    from scipy.signal import lfilter
+
+    from mkc_stream.diagnose.forms import colored_white_share
+
+    rng = np.random.default_rng(5)
+    dt, n = 0.05, 400_000
+    for tau in (0.05, 0.5, 5.0):
+        rho = np.exp(-dt / tau)
+        x = lfilter([1.0], [1.0, -rho], rng.normal(size=n) * np.sqrt(1 - rho ** 2))
+        got = np.var(np.diff(x, 3)) / (20 * np.var(x))
+        assert colored_white_share(dt, tau) == pytest.approx(got, rel=0.05, abs=2e-4)
+    assert colored_white_share(dt, 1e-9) == pytest.approx(1.0)
+
+
 def test_bursts_are_not_made_of_a_coloured_noise_peaks():
     """A coloured noise three times the white core turns faster than the running median follows;
     its peaks are not bursts. Five real 25-sigma bursts are still found, with their length. (With
@@ -260,6 +277,22 @@ def test_two_time_scale_coloured_noise_is_found_with_both_components(trajectory)
     taus = sorted(t for s, t in comps if s > 0.03)
     assert len(taus) == 2 and taus[1] >= 10 * taus[0]
     assert r.magnitude["value"] == pytest.approx(np.hypot(0.1, 0.1), rel=0.3)
+
+
+def test_flicker_like_coloured_noise_is_named():
+    """A flicker-like noise as the blind benchmark injects it: three Gauss-Markov components at
+    0.5, 5 and 30 s, 0.09 uT each, against 0.1 uT of white noise, over 500 s. Coloured noise is
+    named and closes the gap. With only the first (two-component, baseline-weighted) estimate
+    it closed 0.94, short of the catch-all's 0.95, and the verdict was "unexplained"; the
+    refined three-component estimate wins on the gap index."""
+    traj = generate("hand", duration=500, rate=20, seed=11, power=True)
+    eff = [("colored_noise", {"sigma": 0.09, "tau": t}) for t in (0.5, 5.0, 30.0)]
+    rec = simulate(traj, SensorModel(noise=0.1, burst_fraction=0.01), effects=eff, seed=14).recording
+    d = diagnose(rec, replicas=24)
+    assert d.verdict == "explained" and d.selected[0] == "colored_noise", (d.verdict, d.selected)
+    r = {e.name: e for e in d.effects}["colored_noise"]
+    assert r.shrink >= 0.95
+    assert r.magnitude["value"] == pytest.approx(0.09 * np.sqrt(3), rel=0.3)
 
 
 def test_throttle_standing_in_for_a_removed_current_effect_is_only_partial(trajectory):

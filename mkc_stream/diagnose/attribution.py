@@ -209,7 +209,8 @@ class Attribution:
                 if current.G <= self.thr or len(selected) >= MAX_EFFECTS:
                     break           # (a screen for a round that will not run costs ~10 s)
                 rnd += 1
-                rs = self.screen(current, remaining, self.screen_R)
+                # catch-alls compete in the first round only (see _round): not screened again
+                rs = self.screen(current, [n for n in remaining if n not in CATCH_ALL], self.screen_R)
                 scores = {n: rs[n][2] for n in rs}
 
         for n in selected:
@@ -395,7 +396,8 @@ class Attribution:
             if not (r.shrink is not None and np.isfinite(r.shrink) and r.shrink > 0.2):
                 r.shrink_given_selected = 0.0 if r.testable else None
                 continue
-            cand = self.eng.extend(final, name)
+            # (a coloured noise's refinement costs four scorings: not for a reported figure)
+            cand = self.eng.extend(final, name, refine=False)
             if cand is None:
                 r.shrink_given_selected = 0.0
                 continue

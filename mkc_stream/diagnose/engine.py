@@ -8,18 +8,24 @@ bootstraps, the fit) is kept in the :class:`Evaluation`.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from . import gap, panel
 from .baseline import BurstReplica, estimate_bursts
-from .forms import FORMS, Env, MeanForm
+from .forms import FORMS, Env, MeanForm, colored_white_share
 from .model import ModelFit, Term, fit_model, project, quick_rss
 from .replicas import clock_replicas, dip_replicas, norm_replicas
 
 #: Stochastic effects that can mimic any slow deterministic one by widening their replicas.
 CATCH_ALL = ("bias_random_walk", "colored_noise")
+#: replicas of a first estimate whose spread weights the refined one (:attr:`.forms.EstimatedForm.refine`)
+REFINE_REPLICAS = 16
+#: refinements: the second one weights by replicas of an estimate already weighted by its own
+#: spread (one pass left a 1.4 s component where the three true ones were 0.5, 5 and 30 s)
+REFINE_PASSES = 2
 
 
 @dataclass
@@ -95,6 +101,8 @@ class Engine:
         self.design = panel.make_design(frame, base.fit.v, base.sigma, extra, q, ph, tol, rot, u_raw=u_raw)
         self._norm_cache = {}
         self._clock_cache = {}
+        self._ref_cache = {}        # the catch-alls' reference replicas (see evaluate)
+        self._scored = {}           # id(cand) -> (cand, R, Evaluation): what _refined already scored
         self._design_cache = {}
         self.train_mult = frame.train_blocks.astype(float)
         self.all_mult = np.ones(frame.n_blocks)
@@ -132,13 +140,18 @@ class Engine:
             for n, p in noise:
                 effects += FORMS[n].replica(self.env, p)
             sensor = self.base.sensor
+            # the white noise measured on the recording already holds the rounding noise
+            # (lsb^2 / 12) and each coloured component's third-difference share: the replicas
+            # add those again, so their white noise is what is left
+            s2 = np.asarray(sensor.noise, dtype=float) ** 2
+            held = np.zeros_like(s2)
             if "quantization" in cand.estimated:
-                # the white noise measured on quantized data already holds the rounding noise
-                # (lsb^2 / 12): the replicas round again, so their white noise is what is left
-                q = np.nan_to_num(np.asarray(cand.estimated["quantization"]["q"], dtype=float))
-                s2 = np.asarray(sensor.noise) ** 2
-                white = np.sqrt(np.maximum(s2 - q ** 2 / 12.0, 0.05 * s2))
-                sensor = replace(sensor, noise=tuple(white))
+                held += np.nan_to_num(np.asarray(cand.estimated["quantization"]["q"], dtype=float)) ** 2 / 12.0
+            cn = cand.estimated.get("colored_noise", {})
+            for s_, t_ in cn.get("components", ()) if cn.get("white_share") else ():
+                held += s_ ** 2 * colored_white_share(self.frame.dt0, t_)
+            if np.any(held > 0):
+                sensor = replace(sensor, noise=tuple(np.sqrt(np.maximum(s2 - held, 0.05 * s2))))
             if len(self._norm_cache) > 24:
                 self._norm_cache.clear()
             self._norm_cache[key] = norm_replicas(self.frame, self.base, effects, R, self.seed, sensor)
@@ -171,6 +184,9 @@ class Engine:
         through other fits)."""
         frame, base = self.frame, self.base
         R = self.R if R is None else int(R)
+        hit = self._scored.get(id(cand))
+        if hit is not None and hit[0] is cand and hit[1] == R and not (in_sample or keep_raw):
+            return hit[2]           # (scores are deterministic: common random numbers)
         valid = base.valid & self._mask(cand, frame.m)[:, None]
         if in_sample:
             folds = [np.ones(frame.n, dtype=bool)]
@@ -190,8 +206,17 @@ class Engine:
         ref = None
         if any(n in CATCH_ALL for n in cand.estimated):
             plain = Candidate(cand.terms, {n: p for n, p in cand.estimated.items() if n not in CATCH_ALL})
-            ref_bs, _, _, _ = self._replica_stats(plain, fits, folds, e, valid, bursts, R)
-            ref = np.array([panel.evaluate(self.design, bs, self.all_mult).arrays()[0] for bs in ref_bs])
+            # the same for every catch-all (and every estimate of it) added to the same model:
+            # a random walk, a coloured noise and its refinement share it
+            key = (R, in_sample, repr(sorted(plain.estimated.items())), bursts["lengths"], bursts["sizes"],
+                   hashlib.sha1(e.tobytes()).digest(), hashlib.sha1(valid.tobytes()).digest())
+            if key not in self._ref_cache:
+                ref_bs, _, _, _ = self._replica_stats(plain, fits, folds, e, valid, bursts, R)
+                if len(self._ref_cache) > 8:
+                    self._ref_cache.clear()
+                self._ref_cache[key] = np.array([panel.evaluate(self.design, bs, self.all_mult).arrays()[0]
+                                                 for bs in ref_bs])
+            ref = self._ref_cache[key]
         if not in_sample:              # the candidate carries the first fold's settings (magnitudes, reports)
             cand = Candidate(list(fits[0].terms), dict(cand.estimated))
         ev = self._score(cand, fits[0], valid, real_bs, rep_bs, rep_e, rep_valid, self.all_mult, ref)
@@ -295,9 +320,10 @@ class Engine:
         return self.gi.index(z, ev.weights, self._penalty(ev, reps))
 
     # -- adding one effect --------------------------------------------------------------------
-    def extend(self, ev: Evaluation, name: str):
+    def extend(self, ev: Evaluation, name: str, refine: bool = True):
         """The candidate ev.cand + effect ``name`` (its design chosen / parameters estimated on
-        the training blocks), or None when the data give no estimate (nothing to add)."""
+        the training blocks), or None when the data give no estimate (nothing to add).
+        refine=False: the first estimate only (a figure for the report, not a selection)."""
         form = FORMS[name]
         if isinstance(form, MeanForm):
             designs = form.designs(self.env)
@@ -308,4 +334,34 @@ class Engine:
         params = form.estimate(self.env, ev, self.all_mult)
         if params is None:
             return None
-        return ev.cand.plus_estimated(name, params)
+        if form.refine is None or not refine:
+            return ev.cand.plus_estimated(name, params)
+        return self._refined(ev, name, params)
+
+    def _refined(self, ev: Evaluation, name: str, first):
+        """The better, on the held-out gap index (REFINE_REPLICAS replicas, common random
+        numbers), of the first estimate and its refinement (:attr:`.forms.EstimatedForm.refine`).
+
+        Why both: neither weighting is right for every noise. The refinement weights the fit by
+        replicas that carry the noise itself, and finds the three decades of a flicker-like
+        noise (0.5, 5 and 30 s components; benchmark trials 29 and 63, left unexplained at a
+        gap of 1.7 by the first estimate, 1.3-1.4 with the true components), but on a single
+        slow Gauss-Markov noise its wider spreads de-weight the long lags the noise is read
+        from and it puts in spurious fast components (pairs 93, 97, 101 lost when it replaced
+        the first). The choice between the two is made on the index the selection then uses and
+        is not paid for separately; the catch-all rules (0.95 bar, log-variance penalty) still
+        apply to the one chosen."""
+        form = FORMS[name]
+        R = min(self.R, REFINE_REPLICAS)
+        params = form.refine(self.env, ev, self.all_mult, None)
+        if params is None:
+            return ev.cand.plus_estimated(name, first)
+        for _ in range(REFINE_PASSES):
+            wide = self.evaluate(ev.cand.plus_estimated(name, params), R=R)
+            params = form.refine(self.env, ev, self.all_mult, wide) or params
+        cands = [ev.cand.plus_estimated(name, first), ev.cand.plus_estimated(name, params)]
+        evs = [self.evaluate(c, R=R) for c in cands]
+        best = int(np.argmin([e.G for e in evs]))
+        # the screen scores the winner with the same replicas next: keep its evaluation
+        self._scored = {id(cands[best]): (cands[best], R, evs[best])}
+        return cands[best]

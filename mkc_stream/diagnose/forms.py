@@ -18,6 +18,7 @@ accelerometer: its form is the misalignment's, and the two are always reported a
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -99,6 +100,10 @@ class EstimatedForm:
     magnitude: Callable        # (env, params) -> dict
     mask: Callable | None = None   # (env, params, raw (N, 3)) -> (N,) usable samples
     alias_of: str | None = None
+    # (env, ctx, mult, spread) -> params: a second estimate, weighted by the spread of the replicas
+    # of ``spread`` (an evaluation carrying a previous estimate; None on the first pass), for an
+    # effect whose own realisation dominates the first estimate's errors (Engine.extend)
+    refine: Callable | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -376,12 +381,14 @@ def _acov(z, inl, slices, K):
     return s, np.round(c)
 
 
-COLORED_GRID = 40           # correlation times tried, from one sample to COLORED_SLOWEST blocks
+COLORED_GRID = 40           # correlation times tried, up to COLORED_SLOWEST blocks
 COLORED_SLOWEST = 64
+COLORED_FASTEST = 3         # samples: the refined grid's fastest (a faster one is the white noise's business)
+COLORED_COMPONENTS = 3      # refined: a flicker-like noise spans three decades
 
 
-def _colored_estimate(env, ctx, mult):
-    """Two Gauss-Markov components (sigma per raw axis, tau), fitted jointly to two views of the
+def _colored_fit(env, ctx, mult, spread=None, refined=False):
+    """Gauss-Markov components (sigma per raw axis, tau), fitted jointly to two views of the
     residual's excess over the replicas':
 
     * within blocks, its lag autocovariance with each block's mean removed (as the panel sees
@@ -391,21 +398,38 @@ def _colored_estimate(env, ctx, mult):
     * between blocks, the variogram of the blocks' apparent hard iron at block lags k:
       6 sigma^2 (share(u) - (1 - e^-u)^2 e^-(k-1)u / u^2), u = L / tau (block means of the process).
 
-    Both taus come from one grid (one sample to 64 blocks; every pair tried, amplitudes >= 0 by
-    NNLS). One fit for both matters: each view also holds the component the other one is about
-    (a fast one sets a floor under the variogram, a slow one leaves part of itself inside the
-    blocks); fitted one after the other, each took the other's share, and a fast component
-    bounded to the block's lags could not follow a noise of a few seconds. Each view counts once
-    (its points weighted by 1/sqrt(count)). The effect enters only when one view shows an
-    excess (3 replica sd at lag 1, or at the variogram's longest lag)."""
+    The taus come from one grid (to 64 blocks; every pair, or triple, tried; amplitudes >= 0 by
+    NNLS, so fewer components are fits too). One fit for both views matters: each view also holds
+    the component the other one is about (a fast one sets a floor under the variogram, a slow one
+    leaves part of itself inside the blocks). Each view counts once (its points weighted by
+    1/sqrt(count)), each point by the replicas' sd. The effect enters only when one view shows an
+    excess (3 replica sd at lag 1, or at the variogram's longest lag).
+
+    First estimate (refined=False): two components, grid from one sample, points weighted by the
+    baseline's replicas. Refined (:attr:`EstimatedForm.refine`, chosen against the first by the
+    gap index in :meth:`.engine.Engine.extend`):
+
+    * three components: a flicker-like noise spans decades (two fitted to sums of 0.5, 5 and
+      30 s left a gap index of 1.6-1.7 on benchmark trials the true three closed to 1.3);
+    * ``spread``, an evaluation whose replicas carry a previous estimate, gives the points' sd:
+      the baseline's replicas hold white noise only (1e-4 uT^2 at a lag), while a slow noise's
+      own realisation moves the long lags and the variogram by 30-50 of those sd, so the first
+      fit follows one realisation's accidents (the excess is still over the baseline's replicas);
+    * the baseline's white noise (third differences) already holds h(tau) of each component
+      (:func:`colored_white_share`): taken off the model's lag 0, and off the replicas' white
+      noise (:meth:`.engine.Engine._norm`, flagged by "white_share");
+    * the grid starts at COLORED_FASTEST samples (a one-sample component stands for white noise).
+    """
     frame = env.frame
     samples = _noise_samples(env, ctx)
-    acv = _within_block_excess(env, samples, mult)
-    vgm = _variogram_excess(env, samples, mult)
-    fast_seen = acv is not None and acv[1][1] > 3 * acv[2][1]
-    slow_seen = vgm is not None and vgm[1][-1] > 3 * vgm[2][-1]
-    if not (fast_seen or slow_seen):
-        return None
+    wide = None if spread is None else _noise_samples(env, spread)
+    acv = _within_block_excess(env, samples, mult, wide)
+    vgm = _variogram_excess(env, samples, mult, wide)
+    if spread is None:
+        fast_seen = acv is not None and acv[1][1] > 3 * acv[2][1]
+        slow_seen = vgm is not None and vgm[1][-1] > 3 * vgm[2][-1]
+        if not (fast_seen or slow_seen):
+            return None
     L = frame.duration / frame.n_blocks
     data = []
 
@@ -413,8 +437,12 @@ def _colored_estimate(env, ctx, mult):
         out = []
         if acv is not None:
             lags, _, sd, pc, sig = acv
-            out.append((pc * np.exp(-lags / tau) - _block_mean_share_norm(env, mult, tau)) / sig ** 2 / sd
-                       / np.sqrt(lags.size))
+            # the replicas' white noise already holds the component's third-difference share
+            # (colored_white_share), and the replicas carry it with that much less white noise
+            col = pc * np.exp(-lags / tau) - _block_mean_share_norm(env, mult, tau)
+            if refined:
+                col[0] -= colored_white_share(frame.dt0, tau)
+            out.append(col / sig ** 2 / sd / np.sqrt(lags.size))
         if vgm is not None:
             k, _, sd = vgm
             u = L / tau
@@ -425,17 +453,37 @@ def _colored_estimate(env, ctx, mult):
         data.append(acv[1] / acv[2] / np.sqrt(acv[0].size))
     if vgm is not None:
         data.append(vgm[1] / vgm[2] / np.sqrt(vgm[0].size))
-    taus = np.geomspace(frame.dt0, COLORED_SLOWEST * L, COLORED_GRID)
+    taus = np.geomspace((COLORED_FASTEST if refined else 1) * frame.dt0, COLORED_SLOWEST * L, COLORED_GRID)
     cols = [views(t) for t in taus]
     y = np.concatenate(data)
     best = None
-    for i in range(taus.size):
-        for j in range(i + 1, taus.size):
-            v, r = nnls(np.stack([cols[i], cols[j]], axis=1), y)
-            if best is None or r < best[0]:
-                best = (r, (taus[i], taus[j]), v)
+    for idx in itertools.combinations(range(taus.size), COLORED_COMPONENTS if refined else 2):
+        v, r = nnls(np.stack([cols[i] for i in idx], axis=1), y)
+        if best is None or r < best[0]:
+            best = (r, taus[list(idx)], v)
     comps = [[float(np.sqrt(a)), float(t)] for a, t in zip(best[2], best[1]) if a > 0]
-    return {"components": comps} if comps else None
+    if not comps:
+        return None
+    return {"components": comps, "white_share": True} if refined else {"components": comps}
+
+
+def _colored_estimate(env, ctx, mult):
+    return _colored_fit(env, ctx, mult)
+
+
+def _colored_refined(env, ctx, mult, spread):
+    return _colored_fit(env, ctx, mult, spread, refined=True)
+
+
+def colored_white_share(dt, tau):
+    """Share of a Gauss-Markov noise's variance that the baseline's white-noise estimate (third
+    differences, :func:`.baseline.hf_sigma`) reads as white: var(d3 x) / (20 var x) for an AR(1)
+    of coefficient rho = e^-dt/tau, i.e. (20 - 30 rho + 12 rho^2 - 2 rho^3) / 20 (1 for white
+    noise, about 0.6 dt / tau for a slow one). Left in, the replicas would carry that part twice,
+    once as white noise and once in the component (with a fitted 0.1 s component their highest
+    band stood 5.7 sd above a benchmark recording's)."""
+    rho = float(np.exp(-dt / tau))
+    return (20.0 - 30.0 * rho + 12.0 * rho ** 2 - 2.0 * rho ** 3) / 20.0
 
 
 def _block_mean_share_norm(env, mult, tau):
@@ -483,10 +531,10 @@ def block_mean_share(L, tau):
     return np.where(u < 1e-4, 1.0 - u / 3.0, 2.0 * (np.exp(-u) - 1.0 + u) / (u * u))
 
 
-def _within_block_excess(env, samples, mult):
+def _within_block_excess(env, samples, mult, wide=None):
     """(lags s, excess, replica sd, pc, sigma) of the norm residual's lag
     autocovariance within blocks (each block's mean removed), over the replicas', lags 0..K;
-    samples from :func:`_noise_samples`."""
+    samples from :func:`_noise_samples`; the sd from the replicas of ``wide`` when given."""
     frame, base = env.frame, env.base
     slices = [sl for sl, w in zip(frame.block_slices(), mult) if w > 0]
     Lb = min(sl.stop - sl.start for sl in slices)
@@ -494,16 +542,18 @@ def _within_block_excess(env, samples, mult):
     sig = base.sigma[0]
     real, reps_in = samples
     s, c = _acov(real[0] / sig, real[1], slices, K)
-    reps = []
-    for z, inl in reps_in:
-        sr, cr = _acov(z / sig, inl, slices, K)
-        reps.append(sr / np.maximum(cr, 1))
-    reps = np.array(reps)
+    def rep_acov(pairs):
+        out = []
+        for z, inl in pairs:
+            sr, cr = _acov(z / sig, inl, slices, K)
+            out.append(sr / np.maximum(cr, 1))
+        return np.array(out)
+    reps = rep_acov(reps_in)
     if reps.shape[0] < 3:
         return None
     pc = np.concatenate([[1.0], np.maximum(_projection_acov(env, K), 1e-3)])
     ex = s / np.maximum(c, 1) - reps.mean(axis=0)
-    sd = np.maximum(reps.std(axis=0, ddof=1), 1e-9)
+    sd = np.maximum((reps if wide is None else rep_acov(wide[1])).std(axis=0, ddof=1), 1e-9)
     return np.arange(K + 1) * frame.dt0, ex, sd, pc, sig
 
 
@@ -559,15 +609,18 @@ def _variogram(o, mult, kmax):
     return g
 
 
-def _variogram_excess(env, samples, mult, kmax=8):
+def _variogram_excess(env, samples, mult, wide=None, kmax=8):
     """(block lags, excess, replica sd) of the variogram of the blocks' apparent hard iron;
-    samples from :func:`_noise_samples`."""
+    samples from :func:`_noise_samples`; the sd from the replicas of ``wide`` when given."""
     real, reps = samples
     g = _variogram(_offsets(env, *real), mult, kmax)
     gr = np.array([_variogram(_offsets(env, *r), mult, kmax) for r in reps])
     if gr.shape[0] < 3 or not np.isfinite(gr).all() or not np.isfinite(g).all():
         return None
-    return np.arange(1, kmax + 1), g - gr.mean(axis=0), np.maximum(gr.std(axis=0, ddof=1), 1e-30)
+    gs = gr if wide is None else np.array([_variogram(_offsets(env, *r), mult, kmax) for r in wide[1]])
+    if not np.isfinite(gs).all():
+        return None
+    return np.arange(1, kmax + 1), g - gr.mean(axis=0), np.maximum(gs.std(axis=0, ddof=1), 1e-30)
 
 
 def _colored():
@@ -579,7 +632,7 @@ def _colored():
         val, unit = env.field_unit(float(np.sqrt(sum(s_ ** 2 for s_, _ in comps))))
         return {"value": val, "unit": unit, "components": [list(c) for c in comps],
                 "meaning": "standard deviation per axis (Gauss-Markov components: [sigma, tau s])"}
-    return EstimatedForm("colored_noise", "noise", _colored_estimate, replica, mag)
+    return EstimatedForm("colored_noise", "noise", _colored_estimate, replica, mag, refine=_colored_refined)
 
 
 def block_offsets(env, bs):
