@@ -458,6 +458,9 @@ class Attribution:
         eng = self.eng
         form = FORMS[name]
         base_ev = self.ev0              # the estimate of the effect alone, from the baseline's residuals
+        # the resamples use the form's first estimate only: when a coloured noise's refinement
+        # won (Engine._refined), the interval is that spread around the refined point (a refined
+        # resample costs four scorings; 40 of them would double a diagnosis)
         vals = []
         train = np.flatnonzero(eng.train_mult > 0)
         for m in _resample(self.rng, train, eng.frame.n_blocks, 40):

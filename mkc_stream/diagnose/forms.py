@@ -407,7 +407,7 @@ def _colored_fit(env, ctx, mult, spread=None, refined=False):
 
     First estimate (refined=False): two components, grid from one sample, points weighted by the
     baseline's replicas. Refined (:attr:`EstimatedForm.refine`, chosen against the first by the
-    gap index in :meth:`.engine.Engine.extend`):
+    gap index in :meth:`.engine.Engine._refined`):
 
     * three components: a flicker-like noise spans decades (two fitted to sums of 0.5, 5 and
       30 s left a gap index of 1.6-1.7 on benchmark trials the true three closed to 1.3);
@@ -465,10 +465,6 @@ def _colored_fit(env, ctx, mult, spread=None, refined=False):
     if not comps:
         return None
     return {"components": comps, "white_share": True} if refined else {"components": comps}
-
-
-def _colored_estimate(env, ctx, mult):
-    return _colored_fit(env, ctx, mult)
 
 
 def _colored_refined(env, ctx, mult, spread):
@@ -632,7 +628,7 @@ def _colored():
         val, unit = env.field_unit(float(np.sqrt(sum(s_ ** 2 for s_, _ in comps))))
         return {"value": val, "unit": unit, "components": [list(c) for c in comps],
                 "meaning": "standard deviation per axis (Gauss-Markov components: [sigma, tau s])"}
-    return EstimatedForm("colored_noise", "noise", _colored_estimate, replica, mag, refine=_colored_refined)
+    return EstimatedForm("colored_noise", "noise", _colored_fit, replica, mag, refine=_colored_refined)
 
 
 def block_offsets(env, bs):
