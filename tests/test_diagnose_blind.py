@@ -55,24 +55,23 @@ def test_blind_benchmark_full(full_score):
     assert S["false_alarm_rate"] <= 0.05
     assert S["named_first"] >= 0.9
     assert S["shrink_correct_ge_0.7"] >= 0.9
+    assert S["pair_truth_in_set"] >= 0.9
     assert S["removed_unexplained_or_partial"] >= 0.7
+    assert S["removed_wrong_claimed"] <= 0.2
     assert S["magnitude_rel_error_median"] <= 0.2
     assert S["seconds_median"] <= 60
 
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): with magnitudes over the issue's whole "
-                                       "realistic ranges, named first per effect >= 80% fails for colored_noise 2/4 "
-                                       "and latency 3/4 (overall 60/63 = 95.2%, met); pair coverage 10/12 = 83% (a "
-                                       "3.4 nT/degC offset under a ramp at oracle SNR 3.9, a 0.4 deg cross-axis); "
-                                       "best wrong effect <= 0.3 in 42%; each measured against 90%; a wrong effect "
-                                       "claimed for 4/15 = 27% of the removed-effect trials against 20%; strict, so "
-                                       "it fails loudly once they are met")
+                                       "realistic ranges, named first per effect >= 80% fails for latency 3/4 (a "
+                                       "5.4 ms latency at oracle SNR 5.0, not detected; overall 62/63 = 98.4%, met); "
+                                       "best wrong effect <= 0.3 in 42% of detected trials against 90% (the "
+                                       "catch-all noise models); strict, so it fails loudly once they are met")
 def test_blind_benchmark_unmet_lines(full_score):
     S = full_score
     assert min(S["named_first_per_effect"].values()) >= 0.8
-    assert S["pair_truth_in_set"] >= 0.9 and S["best_wrong_le_0.3"] >= 0.9
-    assert S["removed_wrong_claimed"] <= 0.2
+    assert S["best_wrong_le_0.3"] >= 0.9
 
 
 def test_matched_snr_whitens_coloured_noise():
@@ -115,4 +114,31 @@ def test_oracle_counts_the_accelerometers_direction_noise():
         eff = bench.Inject("ramp", "offset", lambda ctx: ctx.m.__iadd__(ramp))
         sim = simulate(traj, sensor, effects=[(eff, {})], seed=6)
         snr[lin] = bench.oracle_snr(sim, simulate(traj, sensor, seed=6), traj, sensor)
-    assert snr[0.0] > 1.6 * snr[0.3]          # 2.1 measured; counting the magnetometer noise alone gives 1.0
+    # 1.32 measured (2.1 before the oracle refitted the calibration on the dip channel too);
+    # counting the magnetometer noise alone gives 1.0
+    assert snr[0.0] > 1.2 * snr[0.3]
+
+
+def test_oracle_counts_only_what_the_refitted_calibration_leaves():
+    """The diagnoser refits hard iron and symmetric soft iron on the norm and dip channels at
+    once, so the oracle must too: a symmetric coupling of the axes (S stays symmetric) is all
+    absorbed, whatever its direction change in the dip; a rotation of the same size (which no
+    symmetric S can make without changing the norm) is not. Before the joint refit the oracle
+    removed the calibration from the norm channel only and gave the symmetric coupling SNR
+    7.6, nearly the rotation's 8.3."""
+    import numpy as np
+
+    from mkc_stream.sim import SensorModel, generate, simulate
+
+    bench = _bench()
+    traj = generate("hand", duration=200.0, rate=20.0, seed=5, linear_acc=0.3)
+    sensor = SensorModel(field=45.0, noise=0.1, acc_noise=0.03, soft_iron=np.eye(3))
+    clean = simulate(traj, sensor, seed=6)
+    a = np.radians(1.0)
+    snr = {}
+    for kind, K in (("symmetric", np.array([[0, a, 0], [a, 0, -a], [0, -a, 0]])),
+                    ("rotation", np.array([[0, a, 0], [-a, 0, -a], [0, a, 0]]))):
+        eff = bench.Inject(kind, "field", lambda ctx, K=K: ctx.B.__setitem__(slice(None), ctx.B @ (np.eye(3) + K).T))
+        snr[kind] = bench.oracle_snr(simulate(traj, sensor, effects=[(eff, {})], seed=6), clean, traj, sensor)
+    assert snr["rotation"] > 5.0
+    assert snr["symmetric"] < 0.05 * snr["rotation"]

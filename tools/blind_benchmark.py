@@ -270,54 +270,95 @@ def make_injection(name, rng, traj, sensor):
     raise ValueError(name)
 
 
-def matched_snr2(signal, coloured, white, half_width=16):
-    """SNR^2 of a known signal in Gaussian noise = a coloured series (one draw of it) plus white
-    noise: sum_k |S_k|^2 / (N P_k) over the DFT bins, P_k the noise's spectral density (the
-    coloured draw's periodogram smoothed over 2 half_width + 1 bins, plus white^2). That is the
-    whitened (GLS) matched filter's; for white noise alone it is sum(signal^2) / white^2."""
-    n = signal.size
+def whitener(coloured, white, half_width=16):
+    """A linear map z -> y with sum(y^2) = sum_k |Z_k|^2 / (N P_k) (Parseval), P_k the noise's
+    spectral density: the coloured draw's periodogram smoothed over 2 half_width + 1 bins,
+    plus white^2. Applied to a signal and to the nuisance columns alike, it turns the Gaussian
+    noise white, so least squares on the mapped vectors is the whitened (GLS) fit."""
+    n = coloured.size
     per = np.abs(np.fft.fft(coloured)) ** 2 / n
     P = uniform_filter1d(per, 2 * half_width + 1, mode="wrap") + white ** 2
-    return float(np.sum(np.abs(np.fft.fft(signal)) ** 2 / (n * P)))
+    return lambda z: np.real(np.fft.ifft(np.fft.fft(z) / np.sqrt(P)))
+
+
+def matched_snr2(signal, coloured, white, half_width=16):
+    """SNR^2 of a known signal in Gaussian noise = a coloured series (one draw of it) plus white
+    noise: that of the whitened (GLS) matched filter; for white noise alone sum(signal^2) /
+    white^2."""
+    y = whitener(coloured, white, half_width)(signal)
+    return float(y @ y)
+
+
+#: Effects with an oracle SNR: those whose injected change is a deterministic function of the
+#: trajectory, aux signals and magnitude, with samples that line up (no clock effect). Noise
+#: processes (a coloured noise, a random walk, a quantizer's error) have no fixed shape to know.
+ORACLE_EFFECTS = {"temperature_offset", "temperature_scale", "current_hard_iron", "throttle_hard_iron",
+                  "hard_iron_drift", "hard_iron_step", "scale_nonlinearity", "saturation", "cross_axis",
+                  "higher_order_soft_iron", "latency", "hysteresis", "misalignment"}
+
+
+def calibration_nuisance(x, S):
+    """(9, N, 3): calibrated-frame changes of the baseline's 9 calibration parameters (hard
+    iron b: 3, a symmetric perturbation of S: 6) at the raw minus hard iron x. F and dip0 act
+    on one channel each; the caller adds them."""
+    n = x.shape[0]
+    out = [np.tile(S[:, k], (n, 1)) for k in range(3)]       # d(S (m - b)) / db_k, sign aside
+    for i in range(3):
+        for j in range(i, 3):
+            Ex = np.zeros((n, 3))
+            Ex[:, i] += x[:, j]
+            if i != j:
+                Ex[:, j] += x[:, i]
+            out.append(Ex)                                       # E_ij x, E_ij symmetric
+    return np.stack(out)
 
 
 def oracle_snr(sim, clean, traj, sensor):
     """Signal-to-noise ratio of the injected change for an oracle that knows its exact shape
     (everything but its amplitude): the change of the raw signal (same noise draws with and
     without the effect) seen in the norm channel and in the dip against gravity, minus what the
-    refitted ellipsoid (hard iron, symmetric soft iron) and dip angle absorb, over each
-    channel's simulated noise. Clock-free effects only (the samples line up).
+    refitted calibration absorbs, over each channel's simulated noise. Clock-free effects only
+    (the samples line up).
+
+    The calibration is refitted on both channels at once (as the diagnoser's baseline is):
+    hard iron, symmetric soft iron, the field F (norm) and the dip dip0 (dip). So a change
+    that is part symmetric soft iron (a cross-axis coupling's symmetric part) counts only with
+    what is left of it in both channels, not with its direction change alone.
 
     Noise: the norm channel has the magnetometer's white noise. The dip channel measures the
     field's direction against the accelerometer's, so it also has the accelerometer's
     direction error (linear acceleration and noise: about 1.7 deg RMS on the generated
     trajectories, 10-30 times the magnetometer's own, correlated over ~0.5 s). The oracle
-    whitens it with its spectrum, taken from the clean simulation (matched_snr2)."""
+    whitens it with its spectrum, taken from the clean simulation (:func:`whitener`), and
+    the fit is the joint GLS projection of the signal off the calibration's columns."""
     d = sim.mag_full - clean.mag_full
     ctx = clean.ctx
     S = ctx.S
     x = ctx.B @ np.linalg.inv(S).T                                  # noise-free raw minus hard iron
     v = ctx.B / np.linalg.norm(ctx.B, axis=1, keepdims=True)
     p = d @ S.T                                                      # calibrated-frame change
-    vs = v @ S
-    basis = [np.ones(len(v))] + [vs[:, k] for k in range(3)]
-    basis += [v[:, i] * x[:, j] + v[:, j] * x[:, i] for i in range(3) for j in range(i, 3)]
-    A = np.stack(basis, axis=1)
-    r = np.sum(v * p, axis=1)
-    rn = r - A @ np.linalg.lstsq(A, r, rcond=None)[0]
+    nuis = calibration_nuisance(x, S)
     noise = float(np.mean(np.atleast_1d(sensor.noise)))
-    snr2 = float(rn @ rn) / noise ** 2
+    n = len(v)
+    # per channel, in units of its noise: the calibration's columns (b, S, F, dip0) and the
+    # signal; norm channel: v . change, F shifts it by a constant
+    blocks = [np.concatenate([np.einsum("nk,cnk->cn", v, nuis), np.ones((1, n)), np.zeros((1, n))]) / noise]
+    y = [np.sum(v * p, axis=1) / noise]
     if traj.acc is not None:
         g = traj.acc / np.linalg.norm(traj.acc, axis=1, keepdims=True)
         w = g - np.sum(g * v, axis=1, keepdims=True) * v
         w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-9)
-        rd = np.sum(w * p, axis=1)
-        rd = rd - rd.mean()
         acc = np.stack([clean.recording.aux[c] for c in ("ax", "ay", "az")], axis=1)
         gm = acc / np.linalg.norm(acc, axis=1, keepdims=True)
         dip = np.arccos(np.clip(np.sum(gm * v, axis=1), -1.0, 1.0))    # measured dip (true field)
-        snr2 += matched_snr2(rd, np.mean(np.linalg.norm(ctx.B, axis=1)) * (dip - dip.mean()), noise)
-    return float(np.sqrt(snr2))
+        wh = whitener(np.mean(np.linalg.norm(ctx.B, axis=1)) * (dip - dip.mean()), noise)
+        # dip channel (|B| times the angle, uT): w . change; dip0 shifts it by a constant
+        blocks.append(np.stack([wh(c) for c in np.einsum("nk,cnk->cn", w, nuis)] + [np.zeros(n), wh(np.ones(n))]))
+        y.append(wh(np.sum(w * p, axis=1)))
+    A = np.concatenate(blocks, axis=1).T
+    yy = np.concatenate(y)
+    r = yy - A @ np.linalg.lstsq(A, yy, rcond=None)[0]
+    return float(np.sqrt(r @ r))
 
 
 def make_trial(kind, effect, seed):
@@ -351,7 +392,7 @@ def make_trial(kind, effect, seed):
             effects, mag = make_injection(truth, rng, traj, sensor)
         label.update(truth=truth, magnitude=mag, pair=effect.split("|") if kind == "pair" else None)
     sim = simulate(traj, sensor, effects=[(e, {}) for e in effects], seed=seed + 1)
-    if truth in RANGES:
+    if truth in ORACLE_EFFECTS:
         label["oracle_snr"] = oracle_snr(sim, simulate(traj, sensor, seed=seed + 1), traj, sensor)
     if label["magnitude"] and label["magnitude"].get("from_ctx"):
         label["magnitude"]["value"] = float(sim.truth[label["magnitude"].pop("from_ctx")])
