@@ -579,29 +579,35 @@ def _offsets(env, e, mask):
     """Apparent hard-iron offset (raw unit) of each block: the norm residual e (samples in mask)
     regressed on the time family's six regressors (1, v, v_x^2 - 1/3, v_y^2 - 1/3), as in
     :func:`block_offsets`."""
-    v = env.base.fit.v
-    P = np.column_stack([np.ones(v.shape[0]), v, v[:, 0] ** 2 - 1 / 3, v[:, 1] ** 2 - 1 / 3])
+    if "time_regressors" not in env.cache:
+        v = env.base.fit.v
+        env.cache["time_regressors"] = np.column_stack([np.ones(v.shape[0]), v, v[:, 0] ** 2 - 1 / 3,
+                                                        v[:, 1] ** 2 - 1 / 3])
+    P = env.cache["time_regressors"]
     out = np.full((env.frame.n_blocks, 3), np.nan)
+    used, A, r = [], [], []
     for b, sl in enumerate(env.frame.block_slices()):
         m = mask[sl]
         n = int(m.sum())
         if n < 30:
             continue
         X = P[sl][m]
-        A = X.T @ X + 1e-3 * n * np.eye(6)          # the panel's ridge (:func:`.panel._solve6`)
-        out[b] = np.linalg.solve(A, X.T @ e[sl][m])[1:4]
+        used.append(b)
+        A.append(X.T @ X + 1e-3 * n * np.eye(6))    # the panel's ridge (:func:`.panel._solve6`)
+        r.append(X.T @ e[sl][m])
+    if used:                                        # one stacked solve (the same LAPACK calls)
+        out[used] = np.linalg.solve(np.stack(A), np.stack(r)[..., None])[:, 1:4, 0]
     return out @ np.linalg.inv(env.base.fit.state.S).T
 
 
 def _variogram(o, mult, kmax):
     """Mean squared change of the block offsets o (B, 3) at block lags 1..kmax (blocks in mult)."""
-    used = np.flatnonzero(mult > 0)
+    ok = (mult > 0) & np.isfinite(o).all(axis=1)
     g = np.full(kmax, np.nan)
-    for k in range(1, kmax + 1):
-        d = [np.sum((o[b + k] - o[b]) ** 2) for b in used if b + k < len(o) and mult[b + k] > 0
-             and np.isfinite(o[b]).all() and np.isfinite(o[b + k]).all()]
-        if d:
-            g[k - 1] = np.mean(d)
+    for k in range(1, min(kmax, len(o) - 1) + 1):
+        pair = ok[:-k] & ok[k:]
+        if pair.any():
+            g[k - 1] = np.mean(np.sum((o[k:][pair] - o[:-k][pair]) ** 2, axis=1))
     return g
 
 

@@ -159,40 +159,46 @@ def block_stats(d: PanelDesign, e, valid, raw, clock_t=None) -> dict:
     hidx = np.clip(np.searchsorted(HIST_EDGES, z, side="right"), 0, N_HIST - 1)
     s["hist"] = np.stack([_bc(d.block * N_HIST + hidx[:, c], fv[:, c], B * N_HIST)
                           .reshape(B, N_HIST) for c in range(C)])
-    # one sparse product per grouping: columns [inl, z, z^2, valid, out, PP*inl (21), P*z (6)] per channel
-    cols = []
+    # one sparse product per grouping. Counts and moments [inl, z, z^2, valid, out] per channel
+    # go to blocks and cells; the regression sums [PP*inl (21), P*z (6)] per channel to blocks
+    # and aux bins (cells never use them: they would be a third of the work for nothing)
+    N = z.shape[0]
+    W = np.empty((N, 5 * C))
+    reg = np.empty((N, 27 * C))
     for c in range(C):
-        cols += [fi[:, c:c + 1], zi[:, c:c + 1], zi[:, c:c + 1] ** 2, fv[:, c:c + 1], out[:, c:c + 1].astype(float),
-                 d.PP * fi[:, c:c + 1], d.P * zi[:, c:c + 1]]
-    W = np.concatenate(cols, axis=1)                # (N, 32 C)
-    nc = 32
-    Wb = ind["block"] @ W                            # (B, 32 C)
-    Wk = (ind["cell"] @ W[:, : nc * C]).reshape(B, K, nc * C)
-    part = lambda A, c, a, b: A[..., c * nc + a: c * nc + b]  # noqa: E731
-    s["n"] = np.stack([part(Wb, c, 0, 1)[:, 0] for c in range(C)])
-    s["s1"] = np.stack([part(Wb, c, 1, 2)[:, 0] for c in range(C)])
-    s["s2"] = np.stack([part(Wb, c, 2, 3)[:, 0] for c in range(C)])
-    s["nvalid"] = np.stack([part(Wb, c, 3, 4)[:, 0] for c in range(C)])
-    s["out"] = np.stack([part(Wb, c, 4, 5)[:, 0] for c in range(C)])
-    s["tXX"] = np.stack([part(Wb, c, 5, 26) for c in range(C)])
-    s["tXe"] = np.stack([part(Wb, c, 26, 32) for c in range(C)])
-    s["cell_n"] = np.stack([part(Wk, c, 0, 1)[..., 0] for c in range(C)])
-    s["cell_s"] = np.stack([part(Wk, c, 1, 2)[..., 0] for c in range(C)])
-    s["cell_valid"] = part(Wk, 0, 3, 4)[..., 0]
-    s["cell_out"] = part(Wk, 0, 4, 5)[..., 0]
-    reg = np.concatenate([W[:, c * nc + 5: c * nc + 32] for c in range(C)], axis=1)   # (N, 27 C)
+        W[:, 5 * c] = fi[:, c]
+        W[:, 5 * c + 1] = zi[:, c]
+        W[:, 5 * c + 2] = zi[:, c] ** 2
+        W[:, 5 * c + 3] = fv[:, c]
+        W[:, 5 * c + 4] = out[:, c]
+        np.multiply(d.PP, fi[:, c:c + 1], out=reg[:, 27 * c: 27 * c + 21])
+        np.multiply(d.P, zi[:, c:c + 1], out=reg[:, 27 * c + 21: 27 * c + 27])
+    Wb = ind["block"] @ W                            # (B, 5 C)
+    Rb = ind["block"] @ reg                          # (B, 27 C)
+    Wk = (ind["cell"] @ W).reshape(B, K, 5 * C)
+    s["n"], s["s1"], s["s2"], s["nvalid"], s["out"] = (Wb[:, k::5].T.copy() for k in range(5))
+    s["tXX"] = np.stack([Rb[:, 27 * c: 27 * c + 21] for c in range(C)])
+    s["tXe"] = np.stack([Rb[:, 27 * c + 21: 27 * c + 27] for c in range(C)])
+    s["cell_n"] = np.stack([Wk[..., 5 * c] for c in range(C)])
+    s["cell_s"] = np.stack([Wk[..., 5 * c + 1] for c in range(C)])
+    s["cell_valid"] = Wk[..., 3].copy()
+    s["cell_out"] = Wk[..., 4].copy()
     for name in d.aux_bins:
         A = (ind["aux:" + name] @ reg).reshape(B, N_AUX_BINS, 27 * C)
         s["aXX:" + name] = np.stack([A[..., c * 27: c * 27 + 21] for c in range(C)])
         s["aXe:" + name] = np.stack([A[..., c * 27 + 21: c * 27 + 27] for c in range(C)])
     if d.rot is not None and C == 2:
-        R3 = d.rot * fi[:, 1:2]
-        rr = np.concatenate([np.stack([d.rot[:, i] * R3[:, j] for i in range(3) for j in range(i, 3)], 1),
-                             d.rot * zi[:, 1:2]], axis=1)
+        rr = np.empty((N, 9))
+        for k, (i, j) in enumerate((i, j) for i in range(3) for j in range(i, 3)):
+            np.multiply(d.rot[:, i], d.rot[:, j] * fi[:, 1], out=rr[:, k])
+        np.multiply(d.rot, zi[:, 1:2], out=rr[:, 6:])
         Wr = ind["block"] @ rr
         s["rXX"], s["rXe"] = Wr[:, :6], Wr[:, 6:]
     if d.quart is not None:
-        Wq = ind["block"] @ np.concatenate([d.quart * zi[:, :1], d.quart ** 2 * fi[:, :1]], axis=1)
+        qz = np.empty((N, 6))
+        np.multiply(d.quart, zi[:, :1], out=qz[:, :3])
+        np.multiply(d.quart ** 2, fi[:, :1], out=qz[:, 3:])
+        Wq = ind["block"] @ qz
         s["qe"], s["qq"] = Wq[:, :3], Wq[:, 3:]
     _spectral(d, s, zi, inl)
     _raw(d, s, raw)
@@ -241,7 +247,13 @@ def _spectral(d, s, zi, inl):
             k = L // tau
             if k < 4:
                 continue
-            means = x[:, :k * tau].reshape(B, k, tau, C).mean(axis=2)
+            # the mean over tau as a running sum of slices: the same additions in the same
+            # order as .mean(axis=2), a third of its time (strided reductions are slow)
+            xr = x[:, :k * tau].reshape(B, k, tau, C)
+            means = xr[:, :, 0, :].copy()
+            for j in range(1, tau):
+                means += xr[:, :, j, :]
+            means /= tau
             dm = np.diff(means, axis=1)
             av[:, :, i] = (0.5 * np.sum(dm * dm, axis=1)).T * ok_b
             av_n[:, :, i] = (k - 1) * ok_b
@@ -251,13 +263,17 @@ def _spectral(d, s, zi, inl):
 def _raw(d, s, raw):
     B = d.n_blocks
     ph = 2 * np.pi * (raw - d.lattice_phase) / d.lattice_q
-    s["lat_c"] = np.stack([_bc(d.block, np.cos(ph[:, j]), B) for j in range(3)])
-    s["lat_s"] = np.stack([_bc(d.block, np.sin(ph[:, j]), B) for j in range(3)])
+    cols = np.empty((raw.shape[0], 12))          # cos, sin of the lattice phase; at max, at min
+    for j in range(3):          # column by column as before: numpy's SIMD paths may differ by layout
+        cols[:, j] = np.cos(ph[:, j])
+        cols[:, 3 + j] = np.sin(ph[:, j])
+    cols[:, 6:9] = raw >= raw.max(axis=0) - d.pile_tol
+    cols[:, 9:12] = raw <= raw.min(axis=0) + d.pile_tol
+    # contiguous (12, B): einsum sums a strided view in another order (last-bit changes)
+    sums = np.ascontiguousarray((indicators(d)["block"] @ cols).T)
+    s["lat_c"], s["lat_s"] = sums[0:3], sums[3:6]
     s["raw_n"] = np.bincount(d.block, minlength=B).astype(float)
-    hi = raw >= raw.max(axis=0) - d.pile_tol
-    lo = raw <= raw.min(axis=0) + d.pile_tol
-    s["pile"] = np.stack([np.stack([_bc(d.block, hi[:, j].astype(float), B),
-                                    _bc(d.block, lo[:, j].astype(float), B)]) for j in range(3)])
+    s["pile"] = np.stack([sums[[6 + j, 9 + j]] for j in range(3)])
 
 
 def _timing(d, s, t):
@@ -428,8 +444,9 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
     tc = tc / max(np.abs(tc).max(), 1e-12)
     for c in range(C):
         jv = np.full((M, 6), np.nan)
+        usable = (mult > 0) & np.isfinite(coef[c, :, :4]).all(axis=1)[None, :]     # (M, B)
         for m in range(M):
-            used = [b for b in range(d.n_blocks) if mult[m, b] > 0 and np.isfinite(coef[c, b, :4]).all()]
+            used = np.flatnonzero(usable[m])
             if len(used) >= 6:
                 o = coef[c, used, 1:4]
                 dd = np.linalg.norm(np.diff(o, axis=0), axis=1)
