@@ -29,6 +29,7 @@ from ..sim.effects import EFFECTS
 from ..sim.effects.base import first_order_lag
 from ..sim.trajectory import moving_average
 from .baseline import robust_sd
+from .panel import time_regressors
 
 UNIT_TO_UT = {"uT": 1.0, "nT": 1e-3, "mT": 1e3, "T": 1e6, "G": 100.0, "gauss": 100.0, "Gauss": 100.0, "mG": 0.1}
 F_REF_UT = 50.0
@@ -580,9 +581,7 @@ def _offsets(env, e, mask):
     regressed on the time family's six regressors (1, v, v_x^2 - 1/3, v_y^2 - 1/3), as in
     :func:`block_offsets`."""
     if "time_regressors" not in env.cache:
-        v = env.base.fit.v
-        env.cache["time_regressors"] = np.column_stack([np.ones(v.shape[0]), v, v[:, 0] ** 2 - 1 / 3,
-                                                        v[:, 1] ** 2 - 1 / 3])
+        env.cache["time_regressors"] = time_regressors(env.base.fit.v)
     P = env.cache["time_regressors"]
     out = np.full((env.frame.n_blocks, 3), np.nan)
     used, A, r = [], [], []

@@ -97,9 +97,15 @@ def quartic_basis(u_raw, v):
     return Q / np.maximum(np.sqrt(np.mean(Q * Q, axis=0)), 1e-12)
 
 
+def time_regressors(v):
+    """The time family's six regressors (REG_NAMES): 1, v, v_x^2 - 1/3, v_y^2 - 1/3."""
+    return np.stack([np.ones(v.shape[0]), v[:, 0], v[:, 1], v[:, 2], v[:, 0] ** 2 - 1 / 3, v[:, 1] ** 2 - 1 / 3],
+                    axis=1)
+
+
 def make_design(frame, v, sigma, extra_aux: dict, lattice_q, lattice_phase, pile_tol, rot=None,
                 u_raw=None) -> PanelDesign:
-    P = np.stack([np.ones(frame.n), v[:, 0], v[:, 1], v[:, 2], v[:, 0] ** 2 - 1 / 3, v[:, 1] ** 2 - 1 / 3], axis=1)
+    P = time_regressors(v)
     PP = np.stack([P[:, i] * P[:, j] for i, j in _TRI], axis=1)
     bins, edges, centres = {}, {}, {}
     for name, x in list(frame.aux.items()) + list(extra_aux.items()):
