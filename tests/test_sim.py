@@ -136,6 +136,32 @@ def test_timing_effects():
     assert (~c.keep).mean() == pytest.approx(0.03, abs=0.002)
 
 
+def test_latency_output_filter_lowers_the_field_strength_at_fast_turns():
+    """A delay alone turns the field and keeps its strength; an output filter of RMS width s
+    also averages directions a turn spreads apart: |B| drops by s^2 |dB/dt|^2 / (2 |B|)."""
+    w = 2 * np.pi / 1.5                                        # rad/s: a fast turn about z
+    t = np.arange(3000) / 100.0
+
+    def field(tq):
+        return 50.0 * np.stack([np.cos(w * tq), np.sin(w * tq), np.zeros_like(tq)], 1)
+
+    def run(params):
+        c = SimContext(t=t, B=field(t), m=field(t) + B0, aux={}, b=B0.copy(), S=np.eye(3), F=50.0,
+                       rng=np.random.default_rng(0), t_out=t.copy(), keep=np.ones(t.size, bool), field_at=field)
+        EFFECTS["latency"].apply(c, params)
+        return c.B
+
+    B = run({"delay": 20.0})
+    assert np.allclose(B, field(t - 0.02)) and np.allclose(np.linalg.norm(B, axis=1), 50.0)
+    s = 0.03
+    B = run({"delay": 20.0, "spread": s * 1e3})
+    drop = 50.0 - np.linalg.norm(B, axis=1)
+    assert drop == pytest.approx(np.full(t.size, s ** 2 * (50.0 * w) ** 2 / (2 * 50.0)), rel=0.02)
+    # the mean delay is still 20 ms: the filtered field points where the field was 20 ms earlier
+    ang = np.arctan2(B[:, 1], B[:, 0]) - np.arctan2(*field(t - 0.02)[:, [1, 0]].T)
+    assert np.abs(np.angle(np.exp(1j * ang))).max() < 1e-6
+
+
 def test_trajectories():
     from mkc_stream.calib.quality import sphere_coverage
 

@@ -329,23 +329,45 @@ def _rotation_mag(env, d, th):
             "meaning": "rotation of the magnetometer against the accelerometer"}
 
 
+#: the latency form's second parameter is the output filter's variance in units of (0.1 s)^2. In
+#: ms^2 its column is so small beside the calibration's that the solver's relative ridge
+#: (model._solve) held it far from its value (40 against 230 ms^2 after the fit's three steps)
+_SPREAD_UNIT_MS = 100.0
+
+
 def _latency():
+    """A delay and an output filter, to second order in time: any filter with impulse-response
+    mean mu and variance s^2 turns a field B(t) into B - mu B' + (s^2 + mu^2) / 2 B'' + ...
+    The first-order term turns the field (tangent to the ellipsoid: the dip channel). The
+    second-order term's radial part is all that changes the strength: |B_out| = |B| - s^2
+    |B'|^2 / (2 |B|) (B . B' = 0 and B . B'' = -|B'|^2 for a constant strength), so a pure
+    delay (s = 0) keeps it and a filter lowers it at fast turns (the norm channel, where the
+    noise is the magnetometer's own and white). Its tangential part is left out: it was worth
+    nothing measurable beside the delay on the benchmark's latency trials."""
     def G(env, d):
-        md = env.mdot() * 1e-3
+        md = env.mdot() * 1e-3                     # per ms of delay
 
         def g(frame, m, st):
-            # a delay turns the field, it never changes its strength: keep the part of dm/dt that
-            # is tangent to the ellipsoid (so the norm channel is untouched, as in the forward model)
             mc = (m - st.b) @ st.S.T
-            v = mc / np.linalg.norm(mc, axis=1, keepdims=True)
-            radial = np.sum(v * (md @ st.S.T), axis=1)
-            tan = md - radial[:, None] * (v @ np.linalg.inv(st.S).T)
-            return -tan[:, :, None]
+            r = np.linalg.norm(mc, axis=1, keepdims=True)
+            v = mc / r
+            Sinv_t = np.linalg.inv(st.S).T
+            mdc = md @ st.S.T
+            tan = mdc - np.sum(v * mdc, axis=1, keepdims=True) * v
+            out = np.empty((m.shape[0], 3, 2))
+            out[:, :, 0] = -tan @ Sinv_t
+            # |B'|^2 in (uT/s)^2 = |tan|^2 1e6; times s^2 / 2 with s in units of _SPREAD_UNIT_MS
+            scale = 0.5 * (_SPREAD_UNIT_MS * 1e-3) ** 2 * 1e6
+            out[:, :, 1] = (-scale * np.sum(tan * tan, axis=1, keepdims=True) / r * v) @ Sinv_t
+            return out
         return g
 
     def mag(env, d, th):
-        return {"value": float(th[0]), "unit": "ms", "meaning": "magnetometer later than the accelerometer"}
-    return MeanForm("latency", lambda env: [{}], G, 1, mag)
+        spread = _SPREAD_UNIT_MS * float(np.sqrt(max(th[1], 0.0)))
+        return {"value": float(th[0]), "unit": "ms", "filter_spread_ms": spread,
+                "meaning": "magnetometer later than the accelerometer (filter_spread_ms: RMS width "
+                           "of its output filter; 0 for a pure delay)"}
+    return MeanForm("latency", lambda env: [{}], G, 2, mag)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -2,7 +2,12 @@
 
 * latency: the magnetometer reports the field of ``delay`` ms earlier than the accelerometer
   and gyroscope samples it is stamped with (1-100 ms: filters, bus scheduling); visible only
-  against the accelerometer while the sensor rotates.
+  against the accelerometer while the sensor rotates. ``spread`` is the RMS width of the
+  sensor's output filter around that delay (0: a pure transport delay). A filter averages field
+  directions that a turn spreads apart, so the field strength it reports drops at fast turns,
+  by spread^2 |dB/dt|^2 / (2 |B|) to second order: seen in the field strength too, not only
+  against the accelerometer. A sampled first-order filter of time constant T (ODR averaging) has a
+  delay of about T and a spread of about sqrt(T (T + dt)).
 * timestamp_jitter: reported timestamps scatter around the true sampling instants
   (0.05-5 ms RMS: host-side stamping), Gaussian or heavier-tailed (scheduling delays).
 * sample_drops: samples are lost (0.1-10 %), in runs of ``run`` samples on average.
@@ -14,10 +19,21 @@ import numpy as np
 from .base import Effect, Param, SimContext
 
 
-def _latency_forward(ctx: SimContext, delay):
+#: Gauss-Hermite nodes of the output filter (probabilists'): exact mean and variance, and its
+#: higher moments are those of a Gaussian impulse response
+_FILTER_NODES = 7
+
+
+def _latency_forward(ctx: SimContext, delay, spread=0.0):
     if ctx.field_at is None:
         raise ValueError("latency needs a trajectory that can be evaluated between samples")
-    ctx.B[:] = ctx.field_at(ctx.t - delay * 1e-3)
+    t0 = ctx.t - delay * 1e-3
+    if spread <= 0:
+        ctx.B[:] = ctx.field_at(t0)
+        return
+    x, w = np.polynomial.hermite_e.hermegauss(_FILTER_NODES)
+    w = w / w.sum()
+    ctx.B[:] = sum(wi * ctx.field_at(t0 - xi * spread * 1e-3) for xi, wi in zip(x, w))
 
 
 def gennorm_beta(excess_kurtosis: float) -> float:
@@ -74,9 +90,10 @@ def _needs_clock(ev):
 
 LATENCY = Effect(
     name="latency", family="timing", stage="field", kind="mean",
-    params=(Param("delay", "ms", 1.0, 100.0, 20.0),),
+    params=(Param("delay", "ms", 1.0, 100.0, 20.0),
+            Param("spread", "ms", 0.0, 60.0, 0.0, "RMS width of the output filter around the delay (0: pure delay)")),
     needs=("acc",), forward=_latency_forward, testable=_needs_acc_and_motion,
-    doc="magnetometer samples the field delay ms earlier than stamped")
+    doc="magnetometer samples the field delay ms earlier than stamped, averaged over +-spread ms")
 
 TIMESTAMP_JITTER = Effect(
     name="timestamp_jitter", family="timing", stage="clock", kind="clock",
