@@ -342,8 +342,9 @@ def _latency():
     second-order term's radial part is all that changes the strength: |B_out| = |B| - s^2
     |B'|^2 / (2 |B|) (B . B' = 0 and B . B'' = -|B'|^2 for a constant strength), so a pure
     delay (s = 0) keeps it and a filter lowers it at fast turns (the norm channel, where the
-    noise is the magnetometer's own and white). Its tangential part is left out: it was worth
-    nothing measurable beside the delay on the benchmark's latency trials."""
+    noise is the magnetometer's own and white). Its tangential part (from the angular
+    acceleration) is left out: it needs the field's second derivative, noisy at 20 Hz, and the
+    strength term alone explained the benchmark's filtered latencies."""
     def G(env, d):
         md = env.mdot() * 1e-3                     # per ms of delay
 
