@@ -330,3 +330,32 @@ def test_filtering_latency_is_explained_with_its_delay_and_spread(trajectory):
     # correlated accelerometer noise (+-4 ms here), hence the wide bounds
     assert r.magnitude["unit"] == "ms" and 7.5 < r.magnitude["value"] < 30.0
     assert 20.0 < r.magnitude["filter_spread_ms"] < 60.0
+
+
+def test_every_mean_form_is_scaled_above_the_solvers_ridge(clean):
+    """model._solve adds a ridge of 1e-10 x the mean diagonal of the normal matrix, which the
+    calibration's columns dominate. The ridge is on each Gauss-Newton step, so a parameter whose
+    diagonal is D times the ridge keeps a fraction 1 / (1 + D) of its distance to the solution
+    per step: harmless for D >= 100 after the fit's three steps, but the latency's filter
+    variance in ms^2 (D ~ 0.01) stayed at 40 against 230. Every form's columns must be scaled
+    well above it (the smallest here: the latency's delay per ms, D ~ 180)."""
+    from mkc_stream.diagnose.baseline import fit_baseline
+    from mkc_stream.diagnose.forms import FORMS, Env, MeanForm
+    from mkc_stream.diagnose.frame import prepare
+    from mkc_stream.diagnose.model import Term, _normal, fit_model
+
+    frame = prepare(clean, 20000)
+    base = fit_baseline(frame)
+    env = Env(frame, base)
+    checked = []
+    for name, form in FORMS.items():
+        designs = form.designs(env) if isinstance(form, MeanForm) else []
+        if not designs:
+            continue
+        term = Term(name, designs[0], form.G(env, designs[0]), form.k)
+        fit = fit_model(frame, base.fit.state, [term], base.valid, base.sigma, iters=0)
+        A, _ = _normal(fit.X, fit.e, fit.inlier.astype(np.float64), base.sigma)
+        ridge = 1e-10 * np.trace(A) / A.shape[0]
+        assert np.diag(A)[-form.k:].min() > 100.0 * ridge, name
+        checked.append(name)
+    assert len(checked) >= 12 and "latency" in checked
