@@ -333,7 +333,7 @@ def test_filtering_latency_is_explained_with_its_delay_and_spread(trajectory):
 
 
 def test_every_mean_form_is_scaled_above_the_solvers_ridge(clean):
-    """model._solve adds a ridge of 1e-10 x the mean diagonal of the normal matrix, which the
+    """model._solve adds a ridge of RIDGE (1e-10) x the mean diagonal of the normal matrix, which the
     calibration's columns dominate. The ridge is on each Gauss-Newton step, so a parameter whose
     diagonal is D times the ridge keeps a fraction 1 / (1 + D) of its distance to the solution
     per step: harmless for D >= 100 after the fit's three steps, but the latency's filter
@@ -342,7 +342,7 @@ def test_every_mean_form_is_scaled_above_the_solvers_ridge(clean):
     from mkc_stream.diagnose.baseline import fit_baseline
     from mkc_stream.diagnose.forms import FORMS, Env, MeanForm
     from mkc_stream.diagnose.frame import prepare
-    from mkc_stream.diagnose.model import Term, _normal, fit_model
+    from mkc_stream.diagnose.model import RIDGE, Term, _normal, fit_model
 
     frame = prepare(clean, 20000)
     base = fit_baseline(frame)
@@ -355,7 +355,7 @@ def test_every_mean_form_is_scaled_above_the_solvers_ridge(clean):
         term = Term(name, designs[0], form.G(env, designs[0]), form.k)
         fit = fit_model(frame, base.fit.state, [term], base.valid, base.sigma, iters=0)
         A, _ = _normal(fit.X, fit.e, fit.inlier.astype(np.float64), base.sigma)
-        ridge = 1e-10 * np.trace(A) / A.shape[0]
+        ridge = RIDGE * np.trace(A) / A.shape[0]
         assert np.diag(A)[-form.k:].min() > 100.0 * ridge, name
         checked.append(name)
     assert len(checked) >= 12 and "latency" in checked

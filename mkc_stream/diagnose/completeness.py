@@ -33,7 +33,7 @@ from scipy import stats
 
 from .engine import CATCH_ALL
 from .matched import ALPHA
-from .model import INLIER_K, channels
+from .model import INLIER_K, RIDGE, channels
 
 #: share of an aux term's weighted norm it must keep outside the base to be tested (a term the
 #: selected effects span, like the current's own effect against the current, has nothing left)
@@ -77,7 +77,7 @@ class _Design:
     def stats(self, Xb, cols):
         """Q of each term in cols (list of (N*C, k)) against the residual, given the base Xb."""
         Abb = self.gram(Xb, Xb)
-        Abb += 1e-10 * np.trace(Abb) / Abb.shape[0] * np.eye(Abb.shape[0])
+        Abb += RIDGE * np.trace(Abb) / Abb.shape[0] * np.eye(Abb.shape[0])
         r = self.e - Xb @ np.linalg.solve(Abb, self.gram(Xb, self.e[:, None]))[:, 0]
         out = np.zeros(len(cols))
         for i, Xt in enumerate(cols):

@@ -347,6 +347,8 @@ def _latency():
     strength term alone explained the benchmark's filtered latencies."""
     def G(env, d):
         md = env.mdot() * 1e-3                     # per ms of delay
+        # |B'|^2 in (uT/s)^2 = |tan|^2 1e6; times s^2 / 2 with s in units of _SPREAD_UNIT_MS
+        scale = 0.5 * (_SPREAD_UNIT_MS * 1e-3) ** 2 * 1e6
 
         def g(frame, m, st):
             mc = (m - st.b) @ st.S.T
@@ -357,8 +359,6 @@ def _latency():
             tan = mdc - np.sum(v * mdc, axis=1, keepdims=True) * v
             out = np.empty((m.shape[0], 3, 2))
             out[:, :, 0] = -tan @ Sinv_t
-            # |B'|^2 in (uT/s)^2 = |tan|^2 1e6; times s^2 / 2 with s in units of _SPREAD_UNIT_MS
-            scale = 0.5 * (_SPREAD_UNIT_MS * 1e-3) ** 2 * 1e6
             out[:, :, 1] = (-scale * np.sum(tan * tan, axis=1, keepdims=True) / r * v) @ Sinv_t
             return out
         return g

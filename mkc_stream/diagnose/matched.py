@@ -37,7 +37,7 @@ import numpy as np
 from scipy import stats
 
 from .forms import FORMS, MeanForm
-from .model import INLIER_K, channels, project
+from .model import INLIER_K, RIDGE, channels, project
 
 #: total false-alarm budget of the matched tests (Bonferroni over the tests)
 ALPHA = 0.01
@@ -108,7 +108,7 @@ class MatchedTests:
         if given:
             Xb = np.concatenate([Xb] + [self.columns(g)[self.design_index(g)][1] for g in given], axis=1)
         Abb = self._gram(Xb, Xb)
-        Abb += 1e-10 * np.trace(Abb) / Abb.shape[0] * np.eye(Abb.shape[0])
+        Abb += RIDGE * np.trace(Abb) / Abb.shape[0] * np.eye(Abb.shape[0])
         best = np.full(self.M, -np.inf)
         pick = np.zeros(self.M, dtype=int)
         for i, (_, Xt) in enumerate(self.columns(name)):
@@ -117,7 +117,7 @@ class MatchedTests:
             Xo = Xt - Xb @ B
             A = self._gram(Xo, Xo)
             k = A.shape[0]
-            A += 1e-10 * max(np.trace(A) / k, 1e-300) * np.eye(k)
+            A += RIDGE * max(np.trace(A) / k, 1e-300) * np.eye(k)
             # Xo is orthogonal to the base, so this is also the gradient on the residual after
             # the base (baseline + given terms) is refitted
             g = self.EW @ Xo

@@ -22,6 +22,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 INLIER_K = 4.0
+#: relative ridge of every solve (times the normal matrix's mean diagonal, which the
+#: calibration's columns dominate): a form's columns must stand well above it
+RIDGE = 1e-10
 _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
@@ -146,7 +149,7 @@ def _columns(frame, m_corr, st, ch, terms):
 
 def _solve(A, g):
     p = A.shape[0]
-    lam = 1e-10 * max(np.trace(A) / p, 1e-300)
+    lam = RIDGE * max(np.trace(A) / p, 1e-300)
     try:
         return -np.linalg.solve(A + lam * np.eye(p), g)
     except np.linalg.LinAlgError:
