@@ -54,6 +54,7 @@ def test_blind_benchmark_full(full_score):
     S = full_score
     assert S["false_alarm_rate"] <= 0.05
     assert S["named_first"] >= 0.9
+    assert min(S["named_first_per_effect"].values()) >= 0.8
     assert S["shrink_correct_ge_0.7"] >= 0.9
     assert S["pair_truth_in_set"] >= 0.9
     assert S["removed_unexplained_or_partial"] >= 0.7
@@ -63,15 +64,11 @@ def test_blind_benchmark_full(full_score):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): with magnitudes over the issue's whole "
-                                       "realistic ranges, named first per effect >= 80% fails for latency 3/4 (a "
-                                       "5.4 ms latency at oracle SNR 5.0, not detected; overall 62/63 = 98.4%, met); "
-                                       "best wrong effect <= 0.3 in 42% of detected trials against 90% (the "
-                                       "catch-all noise models); strict, so it fails loudly once they are met")
+@pytest.mark.xfail(strict=True, reason="not met yet (issue 6 stays open): best wrong effect <= 0.3 in 43% of "
+                                       "detected trials against 90% (the catch-all noise models close most of any "
+                                       "slow gap by widening their replicas); strict, so it fails loudly once met")
 def test_blind_benchmark_unmet_lines(full_score):
-    S = full_score
-    assert min(S["named_first_per_effect"].values()) >= 0.8
-    assert S["best_wrong_le_0.3"] >= 0.9
+    assert full_score["best_wrong_le_0.3"] >= 0.9
 
 
 def test_matched_snr_whitens_coloured_noise():

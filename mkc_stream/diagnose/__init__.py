@@ -6,7 +6,8 @@ clock) to a :class:`~mkc_stream.io.recording.Recording`, replays the simulator o
 timestamps, directions and aux signals many times, compares a fixed panel of statistics
 (:mod:`.panel`) as calibrated z-scores summarised by a gap index (about 1 when the simulator
 matches; :mod:`.gap`), runs one matched test per deterministic effect of the library (a small
-slow effect the omnibus index cannot see; :mod:`.matched`), and attributes the gap to effects
+slow effect the omnibus index cannot see; :mod:`.matched`; the latency's test also reads the
+magnetometer's timing against the gyroscope, :mod:`.gyro_timing`), and attributes the gap to effects
 of the library on held-out time blocks (:mod:`.attribution`), and calls an explanation complete
 only if the residual no longer follows any recorded aux signal (:mod:`.completeness`; else
 "partially explained", naming the signal). ``Diagnosis.to_json()`` is the
@@ -117,6 +118,7 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     from .completeness import aux_left
     from .engine import Candidate, Engine
     from .frame import prepare
+    from .gyro_timing import gyro_delay
     from .matched import MatchedTests, mean_effects
 
     if profile not in PROFILES:
@@ -146,7 +148,13 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     library = [n for n in EFFECTS if n not in set(exclude)]
     # the omnibus gap index misses small slow mean effects an oracle sees: one matched test per
     # testable mean effect of the library (Bonferroni; see .matched) can also raise the alarm
-    mt = MatchedTests(eng, ev0, mean_effects([n for n in library if EFFECTS[n].testable(base.evidence)[0]]))
+    # the magnetometer's timing against the gyroscope: the latency test's second view
+    gyro = gyro_delay(frame, base.fit.state, base.valid[:, 0]) if frame.gyro is not None else None
+    if gyro is not None and gyro["testable"]:
+        log(f"timing against the gyroscope: magnetometer late by {gyro['delay_ms']:.2f} "
+            f"+- {gyro['se_ms']:.2f} ms (t {gyro['t']:.1f})")
+    mt = MatchedTests(eng, ev0, mean_effects([n for n in library if EFFECTS[n].testable(base.evidence)[0]]),
+                      gyro=gyro)
     fired = mt.fired()
     by_matched = bool(fired) and not by_gap
     detected = by_gap or by_matched
@@ -167,6 +175,9 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     if still:
         log(f"  the residual still follows {', '.join(still)} given {' + '.join(selected)}")
         v = "partially_explained"
+    lat = results.get("latency")
+    if mt.gyro is not None and lat is not None and lat.magnitude is not None:
+        lat.magnitude = {**lat.magnitude, "gyro_delay_ms": gyro["delay_ms"], "gyro_delay_se_ms": gyro["se_ms"]}
     ordered = sorted(results.values(), key=lambda r: (not r.testable, -(r.shrink if r.shrink is not None
                                                                           and np.isfinite(r.shrink) else -1e9)))
     fam = eng.gi.family_scores(ev0.z, ev0.weights) / eng.gi.norm
@@ -182,6 +193,7 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
         "matched_tests": {"level": mt.level, "fired": fired, "tests": mt.summary(),
                           **({k: ms[k] for k in ("shrink", "closed") if k in ms} if ms else {})},
         "aux_left": {"checked": bool(left), "tests": left, "still_followed": still},
+        "gyro_timing": gyro,
         "aux_used": list(frame.aux), "aux_ignored": frame.aux_notes, "bad_rows": frame.bad_rows,
     }
     return Diagnosis(verdict=v, gap_before=ev0.G, gap_after=final.G if selected else ev0.G,

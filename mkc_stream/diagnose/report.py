@@ -44,6 +44,10 @@ def text(diag, source="") -> str:
     mt = info.get("matched_tests") or {}
     if mt.get("fired"):
         L.append(f"  matched tests : fired for {', '.join(mt['fired'])} (each at level {mt['level']:.2g})")
+    gt = info.get("gyro_timing")
+    if gt:
+        L.append(f"  gyro timing   : magnetometer late by {gt['delay_ms']:.2f} +- {gt['se_ms']:.2f} ms against the "
+                 f"gyroscope (t = {gt['t']:.1f})" if gt["testable"] else f"  gyro timing   : not testable ({gt['reason']})")
     if diag.verdict != "no_gap" and info.get("detected_by") == "matched tests":
         # the gap index is at its null level: shrinks are on the matched evidence
         L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the fired matched evidence removed "
