@@ -40,20 +40,19 @@ MIN_BLOCKS = 8
 _E3 = np.eye(3)
 
 
-def _gyro_matrix_columns(w, B):
-    """d r / d K_ij for r = dB/dt + (K w) x B: (e_i w_j) x B."""
+def _gyro_columns(w, B):
+    """d r / d (K_ij, b_k) for r = dB/dt + (K w + b) x B: (e_i w_j) x B, then e_k x B."""
     out = []
     for i in range(3):
         for j in range(3):
             a = np.zeros_like(w)
             a[:, i] = w[:, j]
             out.append(np.cross(a, B))
-    return out
+    return out + [np.cross(np.broadcast_to(_E3[k], B.shape), B) for k in range(3)]
 
 
 def _nuisance(w, B):
-    cols = _gyro_matrix_columns(w, B)                                        # K - I
-    cols += [np.cross(np.broadcast_to(_E3[k], B.shape), B) for k in range(3)]  # gyro bias
+    cols = _gyro_columns(w, B)                                               # K - I, gyro bias
     cols += [np.cross(w, np.broadcast_to(_E3[k], B.shape)) for k in range(3)]  # hard-iron error
     wxB = np.cross(w, B)
     for i in range(3):                                                       # soft-iron error E
@@ -105,8 +104,7 @@ def gyro_delay(frame, state, valid=None) -> dict:
     okr = np.repeat(ok, 3)
 
     # 1. the gyroscope's calibration against the magnetometer: dB/dt = -(K w + b) x B
-    X1 = np.stack(_gyro_matrix_columns(w0, B0) + [np.cross(np.broadcast_to(_E3[k], B0.shape), B0)
-                                                  for k in range(3)], axis=2).reshape(-1, 12)
+    X1 = np.stack(_gyro_columns(w0, B0), axis=2).reshape(-1, 12)
     th1, _, _ = _robust_lsq(X1, -Bd.reshape(-1), okr)
     K, b = th1[:9].reshape(3, 3), th1[9:]
     sv = np.linalg.svd(K, compute_uv=False)
