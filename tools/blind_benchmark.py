@@ -488,6 +488,20 @@ def step_run(out, jobs=1):
 
 ALIASES = {"cross_axis": {"misalignment"}, "misalignment": {"cross_axis"}}
 CATCH_ALL = {"bias_random_walk", "colored_noise"}
+#: each effect's partners in the confusable pairs the benchmark declares (PAIRS)
+PARTNERS = {}
+for _pair in PAIRS:
+    _a, _b = _pair.split("|")
+    PARTNERS.setdefault(_a, set()).add(_b)
+    PARTNERS.setdefault(_b, set()).add(_a)
+
+
+def wrong_source(truth, name):
+    """Why a wrong effect can close the gap: a catch-all noise model (widens its replicas), the
+    truth's declared confusable partner (PAIRS), or another effect."""
+    if name in CATCH_ALL:
+        return "catch_all"
+    return "declared_partner" if name in PARTNERS.get(truth, set()) else "other"
 
 
 def frac(flags):
@@ -515,6 +529,14 @@ def step_score(out):
         wrong = [e for n, e in eff.items()
                  if n != truth and n not in ALIASES.get(truth, set()) and e["shrink"] is not None]
         row["best_wrong"] = max([e["shrink"] for e in wrong], default=None)
+        if wrong:
+            top = max(wrong, key=lambda e: e["shrink"])
+            row["best_wrong_name"] = top["name"]
+            row["best_wrong_source"] = wrong_source(truth, top["name"])
+        unpaired = [e for e in wrong if e["name"] not in PARTNERS.get(truth, set())]
+        row["best_wrong_unpaired"] = max([e["shrink"] for e in unpaired], default=None)
+        row["best_wrong_unpaired_det"] = max([e["shrink"] for e in unpaired if e["name"] not in CATCH_ALL],
+                                             default=None)
         row["best_wrong_det"] = max([e["shrink"] for e in wrong if e["name"] not in CATCH_ALL], default=None)
         row["best_wrong_given"] = max([e.get("shrink_given_selected") or 0.0 for e in wrong], default=None)
         rows.append(row)
@@ -556,6 +578,17 @@ def step_score(out):
     bw = [r["best_wrong"] for r in det if r["best_wrong"] is not None]
     S["best_wrong_le_0.3"] = float(np.mean([b <= 0.3 for b in bw])) if bw else None
     S["best_wrong_median"] = float(np.median(bw)) if bw else None
+    # what the failures of that line are made of (the wrong effect closing the most of each one)
+    src = {}
+    for r in det:
+        if r["best_wrong"] is not None and r["best_wrong"] > 0.3:
+            src[r["best_wrong_source"]] = src.get(r["best_wrong_source"], 0) + 1
+    S["best_wrong_over_0.3_by_source"] = dict(sorted(src.items()))
+    bwu = [r["best_wrong_unpaired"] for r in det if r["best_wrong_unpaired"] is not None]
+    S["best_wrong_without_declared_partner_le_0.3"] = float(np.mean([b <= 0.3 for b in bwu])) if bwu else None
+    bwud = [r["best_wrong_unpaired_det"] for r in det if r["best_wrong_unpaired_det"] is not None]
+    S["best_wrong_deterministic_without_declared_partner_le_0.3"] = (float(np.mean([b <= 0.3 for b in bwud]))
+                                                                      if bwud else None)
     bwd = [r["best_wrong_det"] for r in det if r["best_wrong_det"] is not None]
     S["best_wrong_deterministic_le_0.3"] = float(np.mean([b <= 0.3 for b in bwd])) if bwd else None
     bwg = [r["best_wrong_given"] for r in det if r["best_wrong_given"] is not None]
