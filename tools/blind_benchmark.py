@@ -508,6 +508,13 @@ def frac(flags):
     return float(np.mean(flags)) if len(flags) else None
 
 
+def share_le(rows, key, limit=0.3):
+    """Share of the rows whose ``key`` (a best-wrong shrink) is at most limit; rows without one
+    (no wrong effect of that kind was scored) are left out."""
+    vals = [r[key] for r in rows if r.get(key) is not None]
+    return frac([v <= limit for v in vals])
+
+
 def step_score(out):
     labels = json.loads((out / "sealed" / "labels.json").read_text())
     rows = []
@@ -576,7 +583,7 @@ def step_score(out):
     S["shrink_correct_ge_0.7"] = float(np.mean([s is not None and s >= 0.7 for s in sh])) if det else None
     S["shrink_correct_median"] = float(np.median([s for s in sh if s is not None])) if det else None
     bw = [r["best_wrong"] for r in det if r["best_wrong"] is not None]
-    S["best_wrong_le_0.3"] = float(np.mean([b <= 0.3 for b in bw])) if bw else None
+    S["best_wrong_le_0.3"] = share_le(det, "best_wrong")
     S["best_wrong_median"] = float(np.median(bw)) if bw else None
     # what the failures of that line are made of (the wrong effect closing the most of each one)
     src = {}
@@ -584,15 +591,10 @@ def step_score(out):
         if r["best_wrong"] is not None and r["best_wrong"] > 0.3:
             src[r["best_wrong_source"]] = src.get(r["best_wrong_source"], 0) + 1
     S["best_wrong_over_0.3_by_source"] = dict(sorted(src.items()))
-    bwu = [r["best_wrong_unpaired"] for r in det if r["best_wrong_unpaired"] is not None]
-    S["best_wrong_without_declared_partner_le_0.3"] = float(np.mean([b <= 0.3 for b in bwu])) if bwu else None
-    bwud = [r["best_wrong_unpaired_det"] for r in det if r["best_wrong_unpaired_det"] is not None]
-    S["best_wrong_deterministic_without_declared_partner_le_0.3"] = (float(np.mean([b <= 0.3 for b in bwud]))
-                                                                      if bwud else None)
-    bwd = [r["best_wrong_det"] for r in det if r["best_wrong_det"] is not None]
-    S["best_wrong_deterministic_le_0.3"] = float(np.mean([b <= 0.3 for b in bwd])) if bwd else None
-    bwg = [r["best_wrong_given"] for r in det if r["best_wrong_given"] is not None]
-    S["best_wrong_given_selected_le_0.3"] = float(np.mean([b <= 0.3 for b in bwg])) if bwg else None
+    S["best_wrong_without_declared_partner_le_0.3"] = share_le(det, "best_wrong_unpaired")
+    S["best_wrong_deterministic_without_declared_partner_le_0.3"] = share_le(det, "best_wrong_unpaired_det")
+    S["best_wrong_deterministic_le_0.3"] = share_le(det, "best_wrong_det")
+    S["best_wrong_given_selected_le_0.3"] = share_le(det, "best_wrong_given")
     pairs = [r for r in rows if r["kind"] == "pair" and r["typical"]]
     S["pair_truth_in_set"] = frac([r["truth"] in r["selected"] + r["ambiguous"] for r in pairs])
     rem = [r for r in rows if r["kind"] == "removed" and r["typical"]]
