@@ -777,58 +777,40 @@ def stream_records_c(X, Y, n, m, window, estep_every, precision="double", **kw):
 
 
 # ----------------------------------------------------------------------------------------------
-# golden-vector inputs: rebuilt from their definition (seed or bundled file), never stored
+# golden-vector inputs: stored as data, one file per vector (tools/gen_golden.py writes them once)
 # ----------------------------------------------------------------------------------------------
 
 REPO_ROOT = FIRMWARE_DIR.parent
 GOLDEN_DIR = REPO_ROOT / "tests" / "data" / "golden"
 
-
-def linear_stream(seed, T=1500, n=4, m=2, outlier=0.15):
-    """A multi-channel linear stream y = X theta + noise with uniform outliers (tests/test_stream.py's)."""
-    rng = np.random.default_rng(seed)
-    scales = np.array([1.0, 3.0, 0.3, 1.0, 2.0, 0.5, 1.5, 0.7])[:n]
-    X = rng.normal(size=(T, m, n)) * scales
-    theta = rng.normal(size=n)
-    Y = np.einsum("kmn,n->km", X, theta) + rng.normal(size=(T, m)) * (0.1 * np.arange(1, m + 1))
-    bad = rng.random((T, m)) < outlier
-    Y[bad] += rng.uniform(-20, 20, bad.sum())
-    return X, Y
+#: the arrays a vector's input consists of, by kind; each is stored as little-endian float64
+INPUT_KEYS = {"mag": ("input_mags", "input_t"), "linear": ("input_X", "input_Y")}
 
 
-def vector_input(source: dict) -> dict:
-    """The input of a golden vector from its source definition.
-
-    Magnetometer sources give {"mags" (T, 3), "t" (T,), "unit"}; "linear" gives {"X", "Y"}.
-    """
-    from .io import recording as R
-
-    kind = source["kind"]
-    if kind == "synthetic":
-        from .calib.synthetic import synthetic_mag
-
-        s = synthetic_mag(seed=source["seed"], N=source["N"], burst_fraction=source["burst"],
-                          spike_fraction=source.get("spikes", 0.0), spike_magnitude=source.get("spike_uT", 1000.0))
-        mags = s.raw.copy()
-        for col, every, offset in source.get("nan", []):
-            mags[offset::every, col] = np.nan
-        return {"mags": mags, "t": s.t, "unit": "uT"}
-    if kind == "linear":
-        X, Y = linear_stream(source["seed"], source["T"], source["n"], source["m"], source.get("outlier", 0.15))
-        return {"X": X, "Y": Y}
-    path = REPO_ROOT / source["path"]
-    loaders = {"qmc5883l": R.load_qmc5883l_csv, "ck_explorer": R.load_ck_explorer_csv, "broad": R.load_broad,
-               "cave_survey": R.load_cave_survey_json, "recording": R.read_recording}
-    rec = loaders[kind](path)
-    mags, t = rec.mag, rec.t
-    cycles = int(source.get("cycles", 1))
-    if cycles > 1:         # a short fixture replayed several times (a device re-shot)
-        mags = np.concatenate([mags] * cycles)
-        t = np.arange(len(mags), dtype=np.float64)
-    return {"mags": np.ascontiguousarray(mags), "t": np.ascontiguousarray(t), "unit": rec.mag_unit}
-
-
-def input_digest(arr: np.ndarray) -> str:
+def input_sha256(arrays) -> str:
+    """SHA-256 of the input arrays' little-endian float64 bytes, in order (the stored checksum)."""
     import hashlib
 
-    return hashlib.sha256(np.ascontiguousarray(arr, dtype="<f8").tobytes()).hexdigest()[:16]
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+def stored_input(meta: dict) -> dict:
+    """A golden vector's input as stored in its file, checked against the index's checksum.
+
+    The input is never regenerated at test time: a synthetic stream rebuilt through BLAS differs in
+    its last bits from one CPU to another, and the vectors' checkpoints would no longer apply.
+    Magnetometer vectors give {"mags" (T, 3), "t" (T,), "unit"}; linear ones {"X" (T, m, n), "Y" (T, m)}.
+    """
+    with np.load(GOLDEN_DIR / meta["input_file"]) as z:
+        arrays = [z[k] for k in INPUT_KEYS[meta["kind"]]]
+    digest = input_sha256(arrays)
+    if digest != meta["input_sha256"]:
+        raise ValueError(f"golden vector {meta['name']}: stored input fails its checksum "
+                         f"({digest[:16]} != {meta['input_sha256'][:16]}); regenerate: python tools/gen_golden.py")
+    arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in arrays]
+    if meta["kind"] == "mag":
+        return {"mags": arrays[0], "t": arrays[1], "unit": meta["unit"]}
+    return {"X": arrays[0], "Y": arrays[1]}

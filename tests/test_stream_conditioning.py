@@ -19,7 +19,7 @@ INDEX = json.loads((ROOT / "tests" / "data" / "golden" / "index.json").read_text
 
 def _vector(name):
     v = next(v for v in INDEX["vectors"] if v["name"] == name)
-    return FW.vector_input(v["source"]), v["config"]
+    return FW.stored_input(v), v["config"]
 
 
 def _worst_accepted_difference(a, b):

@@ -14,7 +14,7 @@
 #include "../tools/synth.h"
 
 #define RC(x) ((mkc_real)(x))
-static const double NAN_D = NAN;
+static const double NAN_D = (double)NAN;
 
 static int failures = 0, checks = 0;
 
@@ -124,7 +124,7 @@ static void test_bad_samples(void)
         double x = mags[3 * t], y = mags[3 * t + 1], z = mags[3 * t + 2];
         int s, expect_reject = 0;
         if (t % 50 == 3) {
-            y = NAN;
+            y = (double)NAN;
             expect_reject = 1;
         } else if (t % 97 == 5) {
             x = -HUGE_VAL;
@@ -246,7 +246,7 @@ static void test_configuration(void)
     cfg.sigma_lo = 2000.0;
     CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "sigma_lo > sigma_hi");
     mkc_config_default(&cfg, 9, 1);
-    cfg.d_hi = NAN;
+    cfg.d_hi = (double)NAN;
     CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "NaN bound");
     mkc_config_default(&cfg, 9, 1);
     CHECK(mkc_stream_init(&st, &cfg, bad_sigma, NULL, NULL) == MKC_BAD_INPUT, "negative sigma0");
