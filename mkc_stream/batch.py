@@ -188,17 +188,49 @@ class MKCRegressor(LinearModelMixin):
             d = per_channel(self.d, m, "d")
         return sigma.copy(), d.copy()
 
+    def _check_params(self):
+        """Refuse settings the kernels cannot run with (checked at fit, as scikit-learn does): a
+        negative max_em_iter sized the history arrays below the one row the kernel writes, and a
+        NaN tolerance or an infinite bound ran silently to the iteration caps."""
+        def integer(name, lo):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not v >= lo:
+                raise MKCInputError(f"{name} must be an integer >= {lo}; got {v!r}")
+
+        def number(name, ok, what):
+            v = getattr(self, name)
+            try:
+                ok = ok(float(v)) and np.isfinite(float(v))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise MKCInputError(f"{name} must be a finite number {what}; got {v!r}")
+
+        integer("max_em_iter", 0)
+        integer("max_iter", 1)
+        integer("estep_max_iter", 0)
+        for name in ("em_tol", "tol", "estep_gtol", "sigma_pull"):
+            number(name, lambda v: v >= 0, ">= 0")
+        number("a_factor", lambda v: v > 0, "> 0")
+        if self.a is not None:
+            number("a", lambda v: v > 0, "> 0")
+        try:
+            lo, hi = (float(v) for v in self.sigma_bounds)
+            dlo, dhi = (float(v) for v in self.d_bounds)
+        except (TypeError, ValueError):
+            raise MKCInputError(f"sigma_bounds and d_bounds must be (lo, hi) pairs; got {self.sigma_bounds}, "
+                                f"{self.d_bounds}") from None
+        if not (0 < lo < hi < np.inf) or not (0 < dlo < dhi < np.inf):
+            raise MKCInputError(f"bounds must satisfy 0 < lo < hi < inf; got sigma {self.sigma_bounds}, "
+                                f"d {self.d_bounds}")
+        return lo, hi, dlo, dhi
+
     def fit(self, X, Y):
+        lo, hi, dlo, dhi = self._check_params()
         X3, Y2, single = as_multichannel(X, Y)
         check_full_rank(X3)
         N, m, n = X3.shape
-        lo, hi = self.sigma_bounds
-        dlo, dhi = self.d_bounds
-        if not (0 < lo < hi) or not (0 < dlo < dhi):
-            raise MKCInputError(f"bounds must satisfy 0 < lo < hi; got sigma {self.sigma_bounds}, d {self.d_bounds}")
         fixed_a = -1.0 if self.a is None else float(self.a)
-        if self.a is not None and not fixed_a > 0:
-            raise MKCInputError(f"a must be > 0, got {self.a}")
         sigma, d = self._initial_params(X3, Y2)
         theta = self._start(n)
         if theta is None:

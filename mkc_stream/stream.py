@@ -7,14 +7,24 @@ kernels in kernels/window.py; this class validates shapes and holds the arrays.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import operator
+import struct
+import zipfile
+import zlib
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ._validation import per_channel
 from .batch import DEFAULT_SIGMA_START
 from .kernels import STATUS_TEXT
 from .kernels import window as K
-from .state import KERNEL_ARGS, STATE_VERSION, StreamConfig, allocate, state_nbytes
+from .state import KERNEL_ARGS, STATE_VERSION, StreamConfig, allocate, checked_state, state_nbytes
+
+#: what reading a damaged .npz raises (zipfile and numpy's format parser), besides OSError for a
+#: file that cannot be opened at all
+_ARCHIVE_ERRORS = (ValueError, KeyError, TypeError, EOFError, OverflowError, NotImplementedError, struct.error,
+                   zlib.error, zipfile.BadZipFile)
 
 STREAM_STATUS_TEXT = dict(STATUS_TEXT)
 STREAM_STATUS_TEXT.update({K.WARMING_UP: "warming up", K.REJECTED: "sample rejected (NaN/inf)"})
@@ -50,14 +60,18 @@ class StreamingMKC:
     """
 
     def __init__(self, n, m=1, window=256, estep_every=32, sigma=None, d=None, theta0=None, **config):
-        if sigma is not None and "sigma_start" not in config:
-            config["sigma_start"] = float(np.max(sigma))
         self.config = StreamConfig(n=n, m=m, window=window, estep_every=estep_every, **config)
-        self._sigma0 = np.broadcast_to(np.asarray(DEFAULT_SIGMA_START if sigma is None else sigma, float), (m,)).copy()
-        self._d0 = np.broadcast_to(np.asarray(-1.0 if d is None else d, float), (m,)).copy()
-        if np.any(self._sigma0 <= 0) or (d is not None and np.any(self._d0 <= 0)):
-            raise ValueError("sigma and d must be > 0")
-        self._theta0 = None if theta0 is None else np.asarray(theta0, float).copy()
+        m, n = self.config.m, self.config.n
+        # finite and > 0 per channel, as the C port's init requires (a NaN sigma ran silently singular)
+        self._sigma0 = per_channel(DEFAULT_SIGMA_START if sigma is None else sigma, m, "sigma").copy()
+        self._d0 = np.full(m, -1.0) if d is None else per_channel(d, m, "d").copy()
+        if sigma is not None and "sigma_start" not in config:
+            self.config = replace(self.config, sigma_start=float(np.max(self._sigma0)))
+        self._theta0 = None
+        if theta0 is not None:
+            self._theta0 = np.array(theta0, dtype=np.float64).ravel()
+            if self._theta0.shape != (n,) or not np.isfinite(self._theta0).all():
+                raise ValueError(f"theta0 must be {n} finite numbers; got shape {np.shape(theta0)}")
         self.reset()
 
     # -- state -----------------------------------------------------------------------------
@@ -72,11 +86,11 @@ class StreamingMKC:
         return {k: v.copy() for k, v in self._st.items()}
 
     def load_state(self, state: dict):
+        """Restore a state from `state` (bit-exact). It must come from a stream of the same
+        configuration and be intact; otherwise ValueError, and this stream is left unchanged."""
+        checked = checked_state(self.config, state)      # everything first: a failed load changes nothing
         for k, v in self._st.items():
-            src = np.asarray(state[k])
-            if src.shape != v.shape or src.dtype != v.dtype:
-                raise ValueError(f"state field {k!r} has shape/dtype {src.shape}/{src.dtype}, expected {v.shape}/{v.dtype}")
-            v[...] = src
+            v[...] = checked[k]
         return self
 
     def save(self, path_or_file):
@@ -86,15 +100,29 @@ class StreamingMKC:
 
     @classmethod
     def load(cls, path_or_file):
-        with np.load(path_or_file) as z:
-            meta = json.loads(bytes(z["__meta__"]).decode())
-            if meta.get("version") != STATE_VERSION:
-                raise ValueError(f"state file version {meta.get('version')} != {STATE_VERSION}")
-            cfg = dict(meta["config"])
-            n, m, W, Kk = cfg.pop("n"), cfg.pop("m"), cfg.pop("window"), cfg.pop("estep_every")
-            obj = cls(n, m, W, Kk, sigma=meta["sigma0"], d=None if meta["d0"][0] <= 0 else meta["d0"], **cfg)
-            obj.load_state({k: z[k] for k in obj._st})
-        return obj
+        """A stream from a file written by save(). ValueError for a file that is not an intact state
+        file (truncated, corrupt, another version or configuration); OSError only when it cannot be opened."""
+        try:
+            z = np.load(path_or_file, allow_pickle=False)
+        except _ARCHIVE_ERRORS as exc:
+            raise ValueError(f"not a stream state file: {type(exc).__name__}: {exc}") from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError("not a stream state file: a single array, not an .npz archive")
+        with z:
+            try:
+                meta = json.loads(bytes(z["__meta__"]).decode())
+                if not isinstance(meta, dict) or meta.get("version") != STATE_VERSION:
+                    version = meta.get("version") if isinstance(meta, dict) else None
+                    raise ValueError(f"state file version {version} != {STATE_VERSION}")
+                cfg = dict(meta["config"])
+                n, m, W, Kk = cfg.pop("n"), cfg.pop("m"), cfg.pop("window"), cfg.pop("estep_every")
+                d0 = np.asarray(meta["d0"], dtype=np.float64)
+                obj = cls(n, m, W, Kk, sigma=meta["sigma0"], d=None if d0.size and d0.flat[0] <= 0 else d0, **cfg)
+                state = {k: z[k] for k in z.files if k != "__meta__"}
+            except _ARCHIVE_ERRORS as exc:
+                # a missing member or meta key, a wrong meta type, a damaged or truncated member
+                raise ValueError(f"not a usable stream state file: {type(exc).__name__}: {exc}") from None
+        return obj.load_state(state)
 
     def nbytes(self) -> int:
         return state_nbytes(self.config.n, self.config.m, self.config.window)
@@ -112,15 +140,40 @@ class StreamingMKC:
         return x.reshape(m, n), y.reshape(m)
 
     def learn_one(self, x, y, slot=-1) -> int:
-        """Feed one sample; returns the kernel status code (see STREAM_STATUS_TEXT)."""
+        """Feed one sample; returns the kernel status code (see STREAM_STATUS_TEXT).
+
+        slot: -1 (default) writes at the ring buffer's head; 0 <= slot < window replaces the sample
+        in that slot, or (slot == the window count) fills the next free one.
+        """
         xk, yk = self._shape_one(x, y)
+        if slot != -1:
+            slot = self._check_slot(slot)
         return K.learn_one(*self._args, xk, yk, slot)
+
+    def _check_slot(self, slot) -> int:
+        # the C port's rule (stream.c): the kernel indexes the window with it, unchecked
+        try:
+            if isinstance(slot, (bool, np.bool_)):
+                raise TypeError
+            slot = operator.index(slot)
+        except TypeError:
+            raise TypeError(f"slot must be an integer; got {slot!r}") from None
+        count, W = int(self._st["cnt"][K.C_COUNT]), self.config.window
+        if not (slot == -1 or 0 <= slot < W and slot <= count):
+            allowed = ("-1 (the ring buffer's head)" + (f", 0..{count - 1} (a filled slot to replace)" if count else "")
+                       + (f", {count} (the next free slot)" if count < W else ""))
+            raise ValueError(f"slot {slot} is outside the window of {W} samples ({count} filled): expected {allowed}")
+        return slot
 
     def learn_many(self, X, Y) -> np.ndarray:
         """Feed samples X (T, m, n) or (T, n), Y (T, m) or (T,); returns per-sample status (T,)."""
         n, m = self.config.n, self.config.m
-        X = np.ascontiguousarray(X, dtype=np.float64).reshape(-1, m, n)
-        Y = np.ascontiguousarray(Y, dtype=np.float64).reshape(-1, m)
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        Y = np.ascontiguousarray(Y, dtype=np.float64)
+        if X.size % (m * n) or Y.size % m:
+            raise ValueError(f"expected X (T, {m}, {n}) and Y (T, {m}); got X{X.shape}, Y{Y.shape}")
+        X = X.reshape(-1, m, n)
+        Y = Y.reshape(-1, m)
         if X.shape[0] != Y.shape[0]:
             raise ValueError(f"X has {X.shape[0]} samples, Y has {Y.shape[0]}")
         status = np.empty(X.shape[0], dtype=np.int8)

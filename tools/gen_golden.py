@@ -227,8 +227,8 @@ CPU_DEPENDENT = {"quality": 1e-12, "condition": 1e-9}
 
 def same_checkpoints(old, new: dict) -> list:
     """The keys whose arrays differ: bit for bit, or beyond CPU_DEPENDENT's relative tolerance."""
-    bad = [k for k in set(old.files) ^ set(new)]
-    for k in set(old.files) & set(new):
+    bad = sorted(set(old) ^ set(new))
+    for k in set(old) & set(new):
         a, b = old[k], new[k]
         if k in CPU_DEPENDENT:
             if a.shape != b.shape or not np.allclose(a, b, rtol=CPU_DEPENDENT[k], atol=0.0, equal_nan=True):

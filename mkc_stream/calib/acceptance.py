@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._validation import MKCInputError
+
 #: Earth's field is 22-67 uT at the surface; wider bounds leave room for local anomalies.
 EARTH_FIELD_UT = (15.0, 100.0)
 
@@ -30,6 +32,25 @@ class AcceptanceRules:
     # samples it down-weights are exactly the ones that would correct it); a cold start cannot
     # inherit that. Agreement is ~0.1% of F when both are right.
     max_disagreement_rel: float = 0.02
+
+    def __post_init__(self):
+        # A NaN threshold makes every comparison fail: every trial would be rejected, forever,
+        # with a reason like "coverage 85% < nan%". inf is allowed for the upper limits (no limit).
+        def bad(name, ok):
+            if not ok:
+                raise MKCInputError(f"AcceptanceRules.{name} out of range: {getattr(self, name)!r}")
+
+        num = lambda v: isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)  # noqa: E731
+        for name in ("min_coverage", "max_condition", "max_outlier_fraction", "max_residual_rel", "max_disagreement_rel"):
+            bad(name, num(getattr(self, name)) and not np.isnan(getattr(self, name)))
+        bad("min_coverage", 0 <= self.min_coverage <= 1)
+        bad("max_outlier_fraction", 0 <= self.max_outlier_fraction <= 1)
+        bad("max_condition", self.max_condition >= 1)
+        bad("max_residual_rel", self.max_residual_rel > 0)
+        bad("max_disagreement_rel", self.max_disagreement_rel >= 0)
+        fr = self.field_range_ut
+        bad("field_range_ut", isinstance(fr, (tuple, list)) and len(fr) == 2 and all(num(v) for v in fr)
+            and 0 <= fr[0] < fr[1])
 
 
 def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),

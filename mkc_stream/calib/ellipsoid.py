@@ -104,12 +104,49 @@ def calibration_from_geometry(geom: EllipsoidGeometry):
     return geom.centre.copy(), np.array(S), float(F)
 
 
+#: Gross outliers: samples farther from the coordinate-wise median than GROSS_FACTOR times the
+#: GROSS_QUANTILE of all samples' distances to it. A hand-rotated recording spans at most ~1.5x
+#: that quantile (even one that is still for 70% of its samples); a glitched read (a shorted bus,
+#: a saturated axis decoded as 1e6 uT) lies thousands of times beyond. The quantile, not the median,
+#: sets the scale so that a mostly still recording keeps its rotation; up to 5% gross samples are
+#: recognised. Below 50x the correntropy fit down-weights them itself (measured: no change up to
+#: ~600x the field); beyond ~2000x they fix the truncation bound a, and with it the floor of d,
+#: so far out that the bursts' weights go flat (1-3 uT hard-iron error from one spike).
+GROSS_QUANTILE = 0.95
+GROSS_FACTOR = 50.0
+#: The planarity check looks at the samples within GEOMETRY_CORE times that quantile, so that a
+#: few off-plane spikes cannot make planar data look three-dimensional.
+GEOMETRY_CORE = 3.0
+
+
+def _distance_scale(mag: np.ndarray):
+    with np.errstate(over="ignore", invalid="ignore"):     # a 1e300 read: its distance is inf, and gross
+        r = np.linalg.norm(mag - np.median(mag, axis=0), axis=1)
+    return r, float(np.quantile(r, GROSS_QUANTILE))
+
+
+def gross_outlier_mask(mag: np.ndarray) -> np.ndarray:
+    """True for the samples no magnetometer field explains (see GROSS_FACTOR); all False when the
+    samples have no spread."""
+    r, q = _distance_scale(mag)
+    if not q > 0:
+        return np.zeros(mag.shape[0], dtype=bool)
+    return r > GROSS_FACTOR * q
+
+
 def check_geometry_of_samples(mag: np.ndarray) -> None:
-    """Refuse samples that cannot determine an ellipsoid, with the reason."""
+    """Refuse samples that cannot determine an ellipsoid, with the reason.
+
+    The singular values are those of the samples within GEOMETRY_CORE distance quantiles of the
+    median (all of a real recording), so neither a gross spike (it made sv[0] ~ its size: "a
+    line") nor a few off-plane ones (they made a plane look solid) decide the verdict.
+    """
     N = mag.shape[0]
     if N < MIN_SAMPLES:
         raise EllipsoidError(f"too few samples for an ellipsoid fit: {N} < {MIN_SAMPLES} (hundreds recommended)")
-    C = mag - np.median(mag, axis=0)
+    r, q = _distance_scale(mag)
+    core = r <= GEOMETRY_CORE * q
+    C = mag[core] - np.median(mag, axis=0) if q > 0 and core.sum() >= MIN_SAMPLES else mag - np.median(mag, axis=0)
     sv = np.linalg.svd(C, compute_uv=False)
     if sv[0] == 0:
         raise EllipsoidError("all samples are identical: the sensor never moved")
@@ -244,5 +281,7 @@ class EllipsoidFit:
 def _num(v):
     if v is None:
         return None
+    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+        return int(v)                 # a count (gross_outliers) stays an integer
     v = float(v)
     return v if np.isfinite(v) else None

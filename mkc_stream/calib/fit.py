@@ -5,7 +5,8 @@ import numpy as np
 
 from .._validation import MKCInputError
 from .ellipsoid import (EllipsoidFit, calibration_from_geometry, check_geometry_of_samples, design_matrix,
-                        geometry_from_theta, normalisation_for, raw_geometry, robust_sphere_fit, sphere_theta)
+                        geometry_from_theta, gross_outlier_mask, normalisation_for, raw_geometry, robust_sphere_fit,
+                        sphere_theta)
 from .quality import quality_figures
 
 #: Fixed bandwidth of method "mkc" (the paper's MKC column): weights exp(-e^2/(8 d^2)) halve at ~2.4 d.
@@ -90,19 +91,35 @@ def fit_ellipsoid(mag, method: str = "mkc-em", *, estimator=None, **params) -> E
     if bad.any():
         raise MKCInputError(f"{int(bad.sum())} sample(s) contain NaN or inf (first at row {int(np.flatnonzero(bad)[0])})")
     check_geometry_of_samples(mag)
-    norm = normalisation_for(mag)
-    X = design_matrix(norm.apply(mag))
-    y = np.ones(mag.shape[0])
-    if estimator is None and method.lower() in MKC_METHODS and "theta0" not in params:
-        params["theta0"] = robust_start(mag, norm)
+    mkc = estimator is None and method.lower() in MKC_METHODS
+    # MKC methods: samples no field explains (glitched reads thousands of times the field) are left
+    # out of the fit, its start and its normalisation: their quadratic features would set the
+    # E-step's truncation bound, and with it d's floor (see ellipsoid.GROSS_FACTOR). They keep
+    # weight 0 and count as outliers in the quality figures; quality["gross_outliers"] is how many
+    # were left out. The other methods (least squares, the baselines) see the data as given.
+    gross = gross_outlier_mask(mag) if mkc else np.zeros(mag.shape[0], dtype=bool)
+    fit_mag = mag[~gross] if gross.any() else mag
+    if gross.any():
+        check_geometry_of_samples(fit_mag)
+    norm = normalisation_for(fit_mag)
+    X = design_matrix(norm.apply(fit_mag))
+    y = np.ones(fit_mag.shape[0])
+    if mkc and "theta0" not in params:
+        params["theta0"] = robust_start(fit_mag, norm)
     est = estimator if estimator is not None else make_estimator(method, **params)
     est.fit(X, y)
     theta = np.asarray(est.coef_, dtype=np.float64)
     geom = raw_geometry(geometry_from_theta(theta), norm)
     b, S, F = calibration_from_geometry(geom)
-    w = _sample_weights(est, mag.shape[0])
-    m_cal = (mag - b) @ S.T
-    quality = quality_figures(m_cal, F, weighted_condition(X, w))
+    w_fit = _sample_weights(est, fit_mag.shape[0])
+    w = w_fit
+    if gross.any():
+        w = np.zeros(mag.shape[0])
+        w[~gross] = w_fit
+    with np.errstate(over="ignore", invalid="ignore"):     # the all-sample figures of a 1e300 read are inf
+        m_cal = (mag - b) @ S.T
+        quality = quality_figures(m_cal, F, weighted_condition(X, w_fit))
+    quality["gross_outliers"] = int(gross.sum())
     channels = []
     if hasattr(est, "sigma_") and hasattr(est, "d_"):
         channels = [{"sigma": float(s), "d": float(d)} for s, d in zip(np.atleast_1d(est.sigma_), np.atleast_1d(est.d_))]

@@ -94,12 +94,27 @@ class MagCalibrator:
                  init_samples=None, keep_history=True, **stream_kw):
         if policy not in POLICIES:
             raise MKCInputError(f"policy must be one of {sorted(POLICIES)}")
+        if not isinstance(unit, str):
+            raise MKCInputError(f"unit must be a string such as 'uT' or 'counts'; got {unit!r}")
+        if not isinstance(rules, AcceptanceRules):
+            raise MKCInputError(f"rules must be an AcceptanceRules; got {type(rules).__name__}")
         self.unit = unit
         self.rules = rules
         self.policy = policy
         self.keep_history = keep_history
         self.stream = StreamingMKC(9, 1, window=window, estep_every=estep_every, **stream_kw)
-        self.init_samples = int(init_samples or min(window, 64))
+        W = self.stream.config.window
+        # decisions are taken at E-step checkpoints only: with K > W no checkpoint after the first
+        # ever comes, and the calibrator waits forever without saying why
+        if self.stream.config.estep_every > W:
+            raise MKCInputError(f"estep_every {estep_every} must be <= window {W}: calibrations are checked at E-steps")
+        if init_samples is None or (isinstance(init_samples, (int, np.integer)) and init_samples == 0):
+            init_samples = min(W, 64)          # (0: the default, as in the C port)
+        if isinstance(init_samples, (bool, np.bool_)) or not isinstance(init_samples, (int, np.integer)) \
+                or not 1 <= init_samples <= W:
+            # more than W would hold an unbounded number of samples before the fixed-size window
+            raise MKCInputError(f"init_samples must be an integer in [1, window = {W}]; got {init_samples!r}")
+        self.init_samples = int(init_samples)
         self.reset()
 
     def reset(self):

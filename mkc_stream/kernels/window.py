@@ -21,7 +21,7 @@ theta is therefore the exact batch solution; in between it is the tracked one.
 import math
 
 from .._numba import kernel
-from . import OK, NOT_CONVERGED, SINGULAR
+from . import OK, NOT_CONVERGED, SINGULAR, BAD_INPUT
 from .estep import estep_channel
 from .linalg import spd_solve
 from .correntropy import gauss_weight, weight_exponent_scale
@@ -353,6 +353,11 @@ def learn_one(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, a, Hes, L, D, xs, tpre
     n = icfg[I_N]
     m = icfg[I_M]
     W = icfg[I_W]
+    # as the C port (stream.c): the slot indexes the window unchecked below, so a slot (or a
+    # corrupt head/count) outside it would write past the arrays
+    s = cnt[C_HEAD] if slot < 0 else slot
+    if s < 0 or s >= W or s > cnt[C_COUNT] or cnt[C_COUNT] > W:
+        return BAD_INPUT
     for i in range(m):
         if not math.isfinite(yk[i]):
             cnt[C_REJECTED] += 1
