@@ -7,6 +7,10 @@
  *              [--init-samples N] [--checkpoints]
  *   mkc_replay --linear N M FILE.csv [--window W] [--estep-every K] [--d D] [--fp-rounds R]
  *              [--estep-max-iter I]      (a CSV with a header and columns x0..x(mn-1), y0..y(m-1))
+ *   mkc_replay --read-only RECORDING.csv
+ *
+ * --read-only prints what the reader kept, to compare with read_recording: {"samples", "bad_rows":
+ * [[line, kind], ...], "first_bad_reason", "units", "t", "mag"} (exit 0, or 2 when unreadable).
  *
  * --checkpoints adds "checkpoints": the state after every E-step checkpoint (samples seen, E-steps,
  * status, theta, sigma, d, a, normalisation, trial calibration, decision and reason).
@@ -164,18 +168,25 @@ static void py_repr(char *out, size_t len, double v)
     }
 }
 
+/* a JSON string; invalid UTF-8 (a unit or path from a damaged file) becomes \ufffd, as Python reads it */
 static void json_str(sbuf *b, const char *s)
 {
+    size_t n = strlen(s), k;
     sb_put(b, "\"", 1);
-    for (; *s; s++) {
+    for (; *s; s += k, n -= k) {
         unsigned char c = (unsigned char)*s;
+        k = 1;
         if (c == '"' || c == '\\') {
             char t[2] = {'\\', (char)c};
             sb_put(b, t, 2);
-        } else if (c < 0x20) {
+        } else if (c < 0x20 || c == 0x7f) {
             sb_printf(b, "\\u%04x", c);
+        } else if (c < 0x80) {
+            sb_put(b, s, 1);
+        } else if (recording_u8char(s, n, &k) == 0xFFFD && !(k == 3 && memcmp(s, "\xef\xbf\xbd", 3) == 0)) {
+            sb_put(b, "\\ufffd", 6);
         } else {
-            sb_put(b, (const char *)&c, 1);
+            sb_put(b, s, k);
         }
     }
     sb_put(b, "\"", 1);
@@ -385,7 +396,8 @@ static int usage(const char *msg)
     fprintf(stderr, "usage: mkc_replay RECORDING.csv [--window W] [--estep-every K] [--policy direction|fifo]\n"
                     "                  [--init-samples N] [--checkpoints]\n"
                     "       mkc_replay --linear N M FILE.csv [--window W] [--estep-every K] [--d D]\n"
-                    "                  [--fp-rounds R] [--estep-max-iter I]\n");
+                    "                  [--fp-rounds R] [--estep-max-iter I]\n"
+                    "       mkc_replay --read-only RECORDING.csv\n");
     return EXIT_USAGE;
 }
 
@@ -419,7 +431,7 @@ static int run_mag(const char *path, int window, int K, int policy, int init_sam
     clock_t c0, c1;
     double elapsed;
     int st;
-    if (recording_read(&rec, path) != 0) {
+    if (recording_read(&rec, path, 0) != 0) {
         fprintf(stderr, "mkc_replay: error: cannot read %s: %s\n", path, rec.error);
         return EXIT_USAGE;
     }
@@ -489,14 +501,46 @@ static int run_mag(const char *path, int window, int K, int policy, int init_sam
     sb_printf(&out, "\n}\n");
     fputs(out.s, stdout);
     if (rec.nbad)
-        fprintf(stderr, "mkc_replay: %ld bad rows skipped (first: line %ld, %s)\n", rec.nbad, rec.bad[0].line,
-                rec.bad[0].reason);
+        fprintf(stderr, "mkc_replay: %ld bad rows skipped (first: line %ld, %s)\n", rec.nbad, rec.first_bad_line,
+                rec.first_bad_reason);
     free(out.s);
     free(reason.s);
     free(r.evolution.s);
     free(r.checkpoints.s);
     recording_free(&rec);
     return acc ? EXIT_ACCEPTED : EXIT_REJECTED;
+}
+
+/* ---- the reader alone (tests/test_hostile_c.py compares it with read_recording) ---- */
+
+static int run_read_only(const char *path)
+{
+    recording rec;
+    sbuf head = {NULL, 0, 0};
+    long i;
+    if (recording_read(&rec, path, 1) != 0) {
+        fprintf(stderr, "mkc_replay: error: cannot read %s: %s\n", path, rec.error);
+        return EXIT_USAGE;
+    }
+    /* %.17g: exact round trip (kept values are finite); printed directly, a recording may be large */
+    printf("{\"samples\": %ld, \"bad_rows\": [", rec.n);
+    for (i = 0; i < rec.nbad; i++)
+        printf("%s[%ld, \"%s\"]", i ? ", " : "", rec.bad_line[i], rec_kind_names[rec.bad_kind[i]]);
+    sb_printf(&head, "],\n \"first_bad_reason\": ");
+    json_str(&head, rec.nbad ? rec.first_bad_reason : "");
+    sb_printf(&head, ",\n \"units\": {\"mag\": ");
+    json_str(&head, rec.unit);
+    fputs(head.s, stdout);
+    printf("},\n \"t\": [");
+    for (i = 0; i < rec.n; i++)
+        printf("%s%.17g", i ? ", " : "", rec.t[i]);
+    printf("],\n \"mag\": [");
+    for (i = 0; i < rec.n; i++)
+        printf("%s[%.17g, %.17g, %.17g]", i ? ", " : "", rec.mag[3 * i], rec.mag[3 * i + 1], rec.mag[3 * i + 2]);
+    printf("]}\n");
+    free(head.s);
+    recording_free(&rec);
+    return EXIT_ACCEPTED;
 }
 
 /* ---- the generic stream: a CSV of x0..x(mn-1), y0..y(m-1) per row (header line first) ---- */
@@ -544,7 +588,7 @@ static int run_linear(const char *path, int n, int m, int window, int K, double 
         for (i = 0; i < m * n + m; i++) {
             double val = strtod(p, &e);
             if (e == p)
-                val = NAN;
+                val = (double)NAN;
             if (i < m * n)
                 x[i] = (mkc_real)val;
             else
@@ -584,7 +628,7 @@ int main(int argc, char **argv)
 {
     const char *path = NULL;
     int window = 512, K = 32, policy = MKC_POLICY_DIRECTION, init_samples = 0, want = 0, i;
-    int linear = 0, n = 0, m = 0, fp_rounds = -1, es_iter = -1;
+    int linear = 0, read_only = 0, n = 0, m = 0, fp_rounds = -1, es_iter = -1;
     double d0 = -1.0;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -615,6 +659,8 @@ int main(int argc, char **argv)
             d0 = strtod(argv[++i], NULL);
         } else if (strcmp(a, "--checkpoints") == 0) {
             want = 1;
+        } else if (strcmp(a, "--read-only") == 0) {
+            read_only = 1;
         } else if (strcmp(a, "--linear") == 0 && i + 2 < argc) {
             linear = 1;
             if (parse_int(argv[++i], &n) != 0 || parse_int(argv[++i], &m) != 0)
@@ -632,6 +678,8 @@ int main(int argc, char **argv)
     }
     if (!path)
         return usage("no recording given");
+    if (read_only)
+        return run_read_only(path);
     if (window < 16 && !linear)
         return usage("--window must be >= 16");
     if (window > MKC_W)
