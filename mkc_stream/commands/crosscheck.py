@@ -4,7 +4,9 @@ Both run MagCalibrator's algorithm over the same recording; at every E-step chec
 (theta, sigma, d, a, the feature normalisation) and the trial calibration (b, S, F, quality) are
 compared, and the largest relative difference per quantity is reported. Exit 0 when every quantity
 is within its tolerance (mkc_stream.firmware.TOLERANCES) and the decisions agree, 1 on a mismatch,
-2 when the recording cannot be read or the C port cannot be built here.
+2 when the recording cannot be read, the C port cannot be built here, or nothing could be compared
+(no checkpoint at all, e.g. fewer samples than a window; for float, no well-posed checkpoint for the
+teacher-forced criterion, e.g. collinear or planar data): a comparison that was not made is not "OK".
 
 --precision double (default): the C double build runs free beside the reference; equal to <= 1e-9.
 --precision float: the float build, free-running (reported) and teacher-forced (the pass criterion:
@@ -17,13 +19,19 @@ import sys
 
 
 def register(subparsers):
-    p = subparsers.add_parser("crosscheck", help="compare the C99 port (firmware_ref/) with the Python calibrator")
-    p.add_argument("recording", help="recording CSV (spec/recording.md); 'demo' for the bundled one")
-    p.add_argument("--window", type=int, default=512, help="samples kept in the window (default 512, as calibrate --stream)")
-    p.add_argument("--estep-every", type=int, default=32, help="E-step every K samples (default 32)")
+    from .argtypes import input_file, json_dest, positive_int, window_size
+
+    p = subparsers.add_parser("crosscheck", help="compare the C99 port (firmware_ref/) with the Python calibrator",
+                              description="Compare the C99 port with the Python calibrator on one recording. "
+                                          "Exit 0 all within tolerance, 1 mismatch, 2 unreadable input, no C port, "
+                                          "or nothing compared.")
+    p.add_argument("recording", type=input_file, help="recording CSV (spec/recording.md); 'demo' for the bundled one")
+    p.add_argument("--window", type=window_size, default=512,
+                   help="samples kept in the window (default 512, as calibrate --stream)")
+    p.add_argument("--estep-every", type=positive_int, default=32, help="E-step every K samples (default 32)")
     p.add_argument("--precision", choices=("double", "float", "both"), default="double",
                    help="which C build to compare (default double)")
-    p.add_argument("--json", metavar="PATH", help="write the report as JSON ('-' for stdout)")
+    p.add_argument("--json", metavar="PATH", type=json_dest, help="write the report as JSON ('-' for stdout)")
     p.add_argument("--quiet", action="store_true", help="no human report")
     p.set_defaults(func=cmd_crosscheck)
 
@@ -34,15 +42,9 @@ def _fmt(x):
 
 def cmd_crosscheck(args) -> int:
     from .. import firmware as FW
-    from ..cli import EXIT_OK, EXIT_REJECTED, UsageError, write_json
-    from ..io.recording import RecordingError, read_recording
+    from ..cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, UsageError, load_recording, write_json
 
-    try:
-        rec = read_recording(args.recording)
-    except (OSError, RecordingError) as exc:
-        raise UsageError(f"cannot read {args.recording}: {exc}") from exc
-    if args.window < 16 or args.estep_every < 1:
-        raise UsageError("--window must be >= 16 and --estep-every >= 1")
+    rec = load_recording(args.recording)
     precisions = ("double", "float") if args.precision == "both" else (args.precision,)
     try:
         for prec in precisions:
@@ -58,7 +60,7 @@ def cmd_crosscheck(args) -> int:
     py, _ = FW.python_checkpoints(mags, W, K, unit, capture_state=need_state)
     report = {"recording": str(args.recording), "samples": int(len(mags)), "window": W, "estep_every": K,
               "reference_feedback": "portable (calib/portable.py)", "checkpoints_python": len(py), "results": {}}
-    ok = True
+    ok, not_compared = True, []
     out = sys.stderr if args.json == "-" else sys.stdout
     for prec in precisions:
         cc, _ = FW.c_checkpoints(mags, W, K, unit, precision=prec)
@@ -75,9 +77,22 @@ def cmd_crosscheck(args) -> int:
             res["tolerances"] = {k: FW.TOLERANCES["float"][k] for k in FW.CORE_QUANTITIES}
             fails = seg.failures("float", FW.CORE_QUANTITIES)
             fails += [m for m in free.mismatches if "python at sample" in m or "count" in m]
+        # what the verdict rests on must have been compared at least once
+        if not py or not cc:
+            unmade = (f"no checkpoint to compare (python {len(py)}, C {len(cc)}): the recording has "
+                      f"{len(mags)} samples, the first checkpoint needs a filled window of up to {W}")
+        elif prec == "float" and seg.checkpoints_python == 0:
+            unmade = ("no well-posed checkpoint for the teacher-forced criterion (an ellipsoid fit covering half "
+                      "the sphere): the data do not span the sphere, e.g. collinear or planar")
+        else:
+            unmade = None
         res["failures"] = fails
-        res["ok"] = not fails
-        ok = ok and not fails
+        res["compared"] = unmade is None
+        res["not_compared_reason"] = unmade
+        res["ok"] = not fails and unmade is None
+        ok = ok and res["ok"]
+        if unmade:
+            not_compared.append((prec, unmade))
         report["results"][prec] = res
         if not args.quiet:
             print(f"mkc-stream crosscheck: {args.recording} ({len(mags)} samples, window {W}, E-step every {K}; "
@@ -87,22 +102,21 @@ def cmd_crosscheck(args) -> int:
             rows = [("free-running", free)] + ([("teacher-forced", seg)] if prec == "float" else [])
             for label, cmp in rows:
                 print(f"  {label:14s}: " + ", ".join(f"{k} {_fmt(cmp.max_rel.get(k))}" for k in keys), file=out)
-            print(f"  status        : {'OK' if not fails else 'MISMATCH - ' + '; '.join(fails[:4])}", file=out)
+            if fails:
+                status = "MISMATCH - " + "; ".join(fails[:4])
+            elif unmade:
+                status = "NOT COMPARED - " + unmade
+            else:
+                status = "OK"
+            print(f"  status        : {status}", file=out)
     report["ok"] = ok
+    outputs = Outputs()
     if args.json:
-        write_json(_jsonable(report), args.json)
-    return EXIT_OK if ok else EXIT_REJECTED
+        outputs.attempt(args.json, write_json, report, args.json)
+    if not ok and not_compared and all(not r["failures"] for r in report["results"].values()):
+        outputs.done(EXIT_USAGE)
+        prec, why = not_compared[0]
+        what = "nothing was compared" if len(not_compared) == len(precisions) else f"the {prec} build was not compared"
+        raise UsageError(f"{args.recording}: {what}: {why}")
+    return outputs.done(EXIT_OK if ok else EXIT_REJECTED)
 
-
-def _jsonable(obj):
-    import math
-
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if hasattr(obj, "item"):
-        return _jsonable(obj.item())
-    return obj

@@ -21,22 +21,21 @@ EPILOG_SOURCE = ("SOURCE is --port PORT [--baud B] --protocol P for a serial por
                  "-b/--bitrate [--bus-kwargs K=V ...] with --can-id ID or --dbc FILE --map COL=SIGNAL,... "
                  "for a CAN bus.")
 
+#: replay --realtime: the longest wall-clock wait between two samples (longer steps are shortened)
+REPLAY_MAX_STEP_S = 1.0
+
 
 # ----------------------------------------------------------------------------------------------
 # parsers
 # ----------------------------------------------------------------------------------------------
 
 
-def _int0(text):
-    try:
-        return int(text, 0)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer (decimal or 0x...)") from None
-
-
 def _add_decoding(p):
+    from .argtypes import can_id
+
     g = p.add_argument_group("CAN frame decoding")
-    g.add_argument("--can-id", type=_int0, help="arbitration id of the built-in frame layout (default 0x110)")
+    g.add_argument("--can-id", type=can_id,
+                   help="arbitration id of the built-in frame layout (default 0x110; 11-bit or 29-bit)")
     g.add_argument("--dbc", metavar="FILE", help="decode frames through this DBC file (needs the [can-dbc] extra)")
     g.add_argument("--map", action="append", metavar="COL=[MSG.]SIGNAL[*SCALE],...",
                    help="with --dbc: which signals are mx, my, mz (required) and other columns")
@@ -44,10 +43,11 @@ def _add_decoding(p):
 
 def _add_source(p):
     from ..ingest.protocols import ALIASES, PROTOCOLS
+    from .argtypes import positive_int, writable_path
 
     g = p.add_argument_group("serial source")
     g.add_argument("--port", help="serial device path or pyserial URL (loop://, socket://host:port, ...)")
-    g.add_argument("--baud", type=int, default=115200, help="baud rate (default 115200)")
+    g.add_argument("--baud", type=positive_int, default=115200, help="baud rate (default 115200)")
     g.add_argument("--protocol", choices=sorted(PROTOCOLS) + sorted(ALIASES), metavar="P",
                    help="serial protocol: " + "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items()))
     g.add_argument("--columns", help="--protocol csv: the header, when the device printed it before the port opened")
@@ -59,39 +59,54 @@ def _add_source(p):
                    help="python-can interface: socketcan, slcan, virtual, pcan, kvaser, vector, ...")
     b.add_argument("-c", "--channel", default=argparse.SUPPRESS,
                    help="python-can channel: can0, vcan0, /dev/ttyACM0 (slcan), a virtual channel name, ...")
-    b.add_argument("-b", "--bitrate", type=int, default=argparse.SUPPRESS, help="CAN bitrate, e.g. 500000")
+    b.add_argument("-b", "--bitrate", type=positive_int, default=argparse.SUPPRESS, help="CAN bitrate, e.g. 500000")
     b.add_argument("--fd", action="store_true", default=argparse.SUPPRESS, help="CAN FD")
-    b.add_argument("--data-bitrate", type=int, default=argparse.SUPPRESS, help="CAN FD data-phase bitrate")
+    b.add_argument("--data-bitrate", type=positive_int, default=argparse.SUPPRESS, help="CAN FD data-phase bitrate")
     b.add_argument("--bus-kwargs", nargs="+", default=argparse.SUPPRESS, metavar="KEY=VALUE",
                    help="more keyword arguments for can.Bus, e.g. sleep_after_open=0 tty_baudrate=921600")
     _add_decoding(p)
-    p.add_argument("--raw-out", metavar="FILE",
+    p.add_argument("--raw-out", metavar="FILE", type=writable_path,
                    help="CAN: also write every raw frame with python-can's writer for this suffix "
                         "(.log, .asc, .blf, .trc); record defaults to the --out name with .log")
 
 
 def _add_run(p, what="live"):
+    from .argtypes import json_dest, positive_float, positive_int
+
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--max-samples", type=int, metavar="N", help="stop after N samples")
-    g.add_argument("--duration", type=float, metavar="S",
+    g.add_argument("--max-samples", type=positive_int, metavar="N", help="stop after N samples")
+    g.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop after S seconds (" + ("sample time" if what == "replay" else "wall clock") + ")")
     p.add_argument("--progress", action="store_true", help="show the status line even when stderr is not a terminal")
-    p.add_argument("--json", metavar="PATH", help="write the machine-readable result ('-' for stdout)")
+    p.add_argument("--json", metavar="PATH", type=json_dest, help="write the machine-readable result ('-' for stdout)")
     p.add_argument("--quiet", action="store_true", help="no human report")
 
 
+def _add_out(p, help, required=False):
+    from .argtypes import writable_path
+
+    p.add_argument("--out", metavar="FILE", type=writable_path, required=required,
+                   help=help + "; an existing file is refused unless --force (the input file always is)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --out (and --raw-out) file")
+
+
 def _add_calib(p):
-    p.add_argument("--window", type=int, default=512, help="samples kept in the calibration window (default 512)")
-    p.add_argument("--estep-every", type=int, default=32, help="E-step every K samples (default 32)")
+    from .argtypes import positive_int, window_size
+
+    p.add_argument("--window", type=window_size, default=512,
+                   help="samples kept in the calibration window (default 512, at most 65536)")
+    p.add_argument("--estep-every", type=positive_int, default=32, help="E-step every K samples (default 32)")
 
 
 def register(subparsers):
+    from .argtypes import float_range, input_file
+
     lv = subparsers.add_parser("live", help="calibrate live from a serial or CAN IMU",
                                description="Calibrate live from a serial or CAN IMU; ends with the accepted "
                                            "calibration. " + EPILOG_SOURCE)
     _add_source(lv)
     _add_run(lv)
-    lv.add_argument("--out", metavar="FILE", help="also record what came in (recording CSV, .csv or .csv.gz)")
+    _add_out(lv, "also record what came in (recording CSV, .csv or .csv.gz)")
     _add_calib(lv)
     lv.set_defaults(func=cmd_live)
 
@@ -100,19 +115,22 @@ def register(subparsers):
                                            "second). " + EPILOG_SOURCE)
     _add_source(rc)
     _add_run(rc, "record")
-    rc.add_argument("--out", metavar="FILE", required=True, help="the recording CSV (.csv or .csv.gz)")
+    _add_out(rc, "the recording CSV (.csv or .csv.gz)", required=True)
     rc.set_defaults(func=cmd_record)
 
     rp = subparsers.add_parser("replay", help="replay a recording or CAN log through the live calibrator",
                                description="Replay a recording (.csv, .csv.gz) or a python-can log (.log, .asc, "
                                            ".blf, .trc, .mf4) through the live calibrator, as fast as possible "
                                            "or in real time.")
-    rp.add_argument("file", help="recording CSV or python-can log")
-    rp.add_argument("--realtime", action="store_true", help="at the pace of the timestamps")
-    rp.add_argument("--speed", type=float, help="pace at this many times real time (implies --realtime)")
+    rp.add_argument("file", type=input_file, help="recording CSV or python-can log")
+    rp.add_argument("--realtime", action="store_true",
+                    help=f"at the pace of the timestamps; a time step longer than {REPLAY_MAX_STEP_S:g} s is "
+                         "shortened to that and reported (a log's pause of hours does not hang the replay)")
+    rp.add_argument("--speed", type=float_range(0.0, lo_open=True, allow_inf=True),
+                    help="pace at this many times real time (implies --realtime)")
     _add_decoding(rp)
     _add_run(rp, "replay")
-    rp.add_argument("--out", metavar="FILE", help="also write what was replayed as a recording CSV")
+    _add_out(rp, "also write what was replayed as a recording CSV")
     _add_calib(rp)
     rp.set_defaults(func=cmd_replay)
 
@@ -199,22 +217,17 @@ def _default_raw_out(out):
 
 def _calibrator(args, unit):
     """A MagCalibrator whose kernels are compiled now, before any port is opened."""
-    import numpy as np
+    from ..cli import compiled_calibrator
 
-    from ..calib.streaming import MagCalibrator
-    from ..cli import UsageError
+    return compiled_calibrator(args.window, args.estep_every, unit, keep_history=False)
 
-    if args.window < 16 or args.estep_every < 1:
-        raise UsageError("--window must be >= 16 and --estep-every >= 1")
-    cal = MagCalibrator(window=args.window, estep_every=args.estep_every, unit=unit, keep_history=False)
-    # a noisy sphere swept twice through the window: every kernel of the update path runs once
-    rng = np.random.default_rng(0)
-    u = rng.normal(size=(2 * args.window + 64, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    cal.update(50.0 * u + np.array([10.0, -5.0, 3.0]) + 0.1 * rng.normal(size=u.shape))
-    cal.reset()
-    cal.unit = unit
-    return cal
+
+def _check_outputs(args, inputs=(), raw_out=None):
+    """Before any work: --out/--raw-out are not an input and replace no file without --force."""
+    from .argtypes import check_new_output
+
+    check_new_output(args.out, args.force, inputs=inputs)
+    check_new_output(raw_out, args.force, inputs=inputs, flag="--raw-out")
 
 
 def _status_printer(args, label):
@@ -264,7 +277,8 @@ def _recorder(path, source, command):
 
 
 def _execute(args, source, cal, command, out_path):
-    """Run the loop over ``source`` (closing it), with a recorder when ``out_path`` is given."""
+    """Run the loop over ``source`` (closing it), with a recorder when ``out_path`` is given.
+    Any exit from here (Ctrl-C, a lost port) still closes the source and the recorder."""
     from ..ingest.live import Run
 
     recorder = _recorder(out_path, source, command) if out_path else None
@@ -281,27 +295,25 @@ def _execute(args, source, cal, command, out_path):
 
 
 def cmd_live(args) -> int:
-    from ..cli import UsageError
+    from ..ingest.live import QueuedReader
 
-    if args.max_samples is not None and args.max_samples < 1:
-        raise UsageError("--max-samples must be >= 1")
+    _check_outputs(args, raw_out=args.raw_out)
     # units are known before the port opens for every built-in decoder (DBC: from the signal)
     cal = _calibrator(args, "uT")
-    from ..ingest.threaded import Threaded
-
-    src = _open_live_source(args, _notify, raw_out=args.raw_out)
+    src = QueuedReader(_open_live_source(args, _notify, raw_out=args.raw_out))
     cal.unit = src.meta.get("units.mag", "uT")
-    run, result, recorder = _execute(args, Threaded(src), cal, "live", args.out)
+    run, result, recorder = _execute(args, src, cal, "live", args.out)
     return _finish(args, "live", src, run, result, recorder)
 
 
 def cmd_record(args) -> int:
-    from ..ingest.threaded import Threaded
+    from ..ingest.live import QueuedReader
 
     is_can = any(hasattr(args, k) for k in ("interface", "channel"))
     raw_out = args.raw_out or (_default_raw_out(args.out) if is_can else None)
-    src = _open_live_source(args, _notify, raw_out=raw_out)
-    run, result, recorder = _execute(args, Threaded(src), None, "record", args.out)
+    _check_outputs(args, raw_out=raw_out)
+    src = QueuedReader(_open_live_source(args, _notify, raw_out=raw_out))
+    run, result, recorder = _execute(args, src, None, "record", args.out)
     return _finish(args, "record", src, run, result, recorder)
 
 
@@ -311,16 +323,16 @@ def cmd_replay(args) -> int:
     from ..ingest.pacing import Paced
     from ..ingest.source import SourceError
 
-    if args.speed is not None and not args.speed > 0:
-        raise UsageError("--speed must be > 0")
+    _check_outputs(args, inputs=[args.file])
     cal = _calibrator(args, "uT")
     try:
         src = open_log(args.file, can_id=args.can_id, dbc=args.dbc, mapping=args.map)
     except SourceError as exc:
         raise UsageError(str(exc)) from None
     cal.unit = src.meta.get("units.mag", "uT")
-    paced = Paced(src, speed=args.speed or 1.0) if (args.realtime or args.speed) else src
-    run, result, recorder = _execute(args, paced, cal, "replay", args.out)
+    if args.realtime or args.speed:
+        src = Paced(src, speed=args.speed or 1.0, max_step_s=REPLAY_MAX_STEP_S)
+    run, result, recorder = _execute(args, src, cal, "replay", args.out)
     return _finish(args, "replay", src, run, result, recorder)
 
 
@@ -357,6 +369,7 @@ def _result_json(command, src, run, result, recorder):
         "recording": None if recorder is None else str(recorder.path),
         "recorded_rows": None if recorder is None else recorder.rows,
         "raw_frames": src.meta.get("raw_frames"),
+        "unfed_at_stop": result.unfed,
     })
     if recorder is not None and recorder.unrecorded:
         obj["unrecorded_fields"] = dict(recorder.unrecorded)
@@ -395,6 +408,15 @@ def _report(command, src, run, result, recorder, obj, out):
     p(f"  ended         : {ended}")
     if d.get("stopped_early"):
         p(f"  warning       : {d['stopped_early']}")
+    if d.get("queue_dropped"):
+        p(f"  overload      : {d['queue_dropped']} samples dropped in {d['queue_drop_events']} batches: the "
+          f"calibrator fell behind the source (queue of {d['queue_capacity']} samples full; counted in drops)")
+    if result.ended == "interrupted" and (d.get("unprocessed_at_close") or result.unfed):
+        p(f"  at the stop   : {d.get('unprocessed_at_close', 0)} samples still queued (not read), {result.unfed} read "
+          "and recorded but not calibrated")
+    if d.get("paced_long_steps"):
+        p(f"  paced         : {d['paced_long_steps']} time steps longer than {REPLAY_MAX_STEP_S:g} s were shortened "
+          f"to {REPLAY_MAX_STEP_S:g} s ({d['paced_skipped_s']:.4g} s of waiting skipped)")
     if recorder is not None:
         p(f"  recording     : {recorder.path} ({recorder.rows} rows" +
           (", intact up to the last sample read)" if result.ended == "source lost" else ")"))
@@ -423,7 +445,7 @@ def _report(command, src, run, result, recorder, obj, out):
 
 
 def _finish(args, command, src, run, result, recorder) -> int:
-    from ..cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, write_json
+    from ..cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, write_json
 
     obj = _result_json(command, src, run, result, recorder)
     if not args.quiet:
@@ -432,22 +454,12 @@ def _finish(args, command, src, run, result, recorder) -> int:
         print(f"mkc-stream: {result.message}; the run ended"
               + (f", {recorder.rows} samples are in {recorder.path}" if recorder is not None else ""),
               file=sys.stderr)
-    if args.json:
-        write_json(_finite(obj), args.json)
+    outputs = Outputs()
+    if args.json:              # write_json prints the result to stdout if its file cannot be written
+        outputs.attempt(args.json, write_json, obj, args.json)
     if result.ended == "source lost":
-        return EXIT_USAGE
+        return outputs.done(EXIT_USAGE)
     if command == "record":
-        return EXIT_OK
-    return EXIT_OK if obj["status"] == "accepted" else EXIT_REJECTED
-
-
-def _finite(obj):
-    """JSON has no NaN/inf: unknown values are null (spec/machine-output.md)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj
+        return outputs.done(EXIT_OK)
+    return outputs.done(EXIT_OK if obj["status"] == "accepted" else EXIT_REJECTED)
 

@@ -26,34 +26,69 @@ class FakeClock:
         self.slept += dt
 
 
+#: Paced's default longest wait between two samples, in wall-clock seconds (after ``speed``)
+MAX_STEP_S = 60.0
+
+
 class Paced:
     """Wrap a source: ``speed=1`` real time, ``speed=k`` k times faster, ``speed=inf`` no waiting.
 
-    The first sample is released at once; sample ``i`` when ``(t_i - t_0) / speed`` seconds
-    have passed on ``clock``. A time that is not finite or goes backwards is released at once.
-    ``read(timeout)`` waits at most ``timeout`` seconds, so a caller stays responsive.
+    The first sample is released at once; each next one when its time step from the previous
+    sample, divided by ``speed``, has passed on ``clock``. A time that is not finite or goes
+    backwards is released at once (and a backward step re-anchors the pacing there). A step longer
+    than ``max_step_s`` wall seconds (a log with a pause of hours, a clock that jumped) is shortened
+    to ``max_step_s``; ``long_steps`` counts those and ``skipped_s`` adds up the wall time not
+    waited (both in ``detail()``). ``read(timeout)`` waits at most ``timeout`` seconds, so a
+    caller stays responsive.
     """
 
-    def __init__(self, source, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep):
+    def __init__(self, source, speed: float = 1.0, clock=time.monotonic, sleep=time.sleep,
+                 max_step_s: float | None = MAX_STEP_S):
         if not speed > 0:
             raise ValueError("speed must be > 0")
+        if max_step_s is not None and not max_step_s >= 0:
+            raise ValueError("max_step_s must be >= 0")
         self.source, self.speed = source, float(speed)
         self.clock, self.sleep = clock, sleep
+        self.max_step_s = max_step_s
+        self.long_steps = 0
+        self.skipped_s = 0.0
         self._buf: deque = deque()
-        self._start: float | None = None
-        self._t0 = 0.0
+        self._last_t: float | None = None        # time of the last finite sample scheduled
+        self._last_due: float | None = None      # its wall-clock release time
+        self._head_due: float | None = None      # release time of self._buf[0], once computed
 
-    def __getattr__(self, name):            # url, meta, counts(), detail(), live ... of the source
+    def __getattr__(self, name):            # url, meta, counts(), live ... of the source
         return getattr(self.source, name)
 
     @property
     def eof(self) -> bool:
         return self.source.eof and not self._buf
 
-    def _due(self, t: float) -> float:
-        if not math.isfinite(t):
-            return -math.inf
-        return self._start + (t - self._t0) / self.speed
+    def detail(self) -> dict:
+        d = dict(self.source.detail())
+        d["paced_long_steps"] = self.long_steps
+        d["paced_skipped_s"] = self.skipped_s
+        return d
+
+    def _head(self, now: float) -> float:
+        """Release time of the first buffered sample (computed once per sample, in order)."""
+        if self._head_due is None:
+            t = self._buf[0].t
+            if self._last_due is None:
+                self._last_due = now
+            due = self._last_due
+            if math.isfinite(t):
+                if self._last_t is not None:
+                    step = max(0.0, (t - self._last_t) / self.speed)
+                    if self.max_step_s is not None and step > self.max_step_s:
+                        self.long_steps += 1
+                        self.skipped_s += step - self.max_step_s
+                        step = self.max_step_s
+                    due = self._last_due + step
+                self._last_t, self._last_due = t, due
+            self._head_due = due
+        return self._head_due
 
     def read(self, timeout: float | None = 0.05) -> list:
         if math.isinf(self.speed):
@@ -65,18 +100,16 @@ class Paced:
         if not self._buf:
             return []
         now = self.clock()
-        if self._start is None:
-            first = next((s.t for s in self._buf if math.isfinite(s.t)), 0.0)
-            self._start, self._t0 = now, first
-        due = self._due(self._buf[0].t)
+        due = self._head(now)
         if due > now:
             wait = due - now if timeout is None else min(due - now, timeout)
             self.sleep(wait)
             now = self.clock()
         out = []
         buf = self._buf
-        while buf and self._due(buf[0].t) <= now:
+        while buf and self._head(now) <= now:
             out.append(buf.popleft())
+            self._head_due = None
             if not buf and not self.source.eof:
                 buf.extend(self.source.read(0))
         return out
