@@ -15,6 +15,17 @@ def _plt():
     return plt
 
 
+def save_figure(fig, path, dpi=110):
+    """Render to memory, then write the file ourselves: matplotlib's own writer can drop a failed
+    write (a full disk) without raising, and a plot the user asked for must not vanish silently."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format="png")
+    with open(path, "wb") as fh:            # OSError (ENOSPC, EACCES) reaches the caller
+        fh.write(buf.getvalue())
+
+
 def plot_calibration(raw, fit, path, title=""):
     """Raw samples coloured by weight with the fitted ellipsoid, and |m_cal| against time."""
     plt = _plt()
@@ -42,5 +53,7 @@ def plot_calibration(raw, fit, path, title=""):
 
     fig.suptitle(f"{os.path.basename(str(title))}  [{fit.method}]")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        save_figure(fig, path)
+    finally:
+        plt.close(fig)

@@ -8,6 +8,7 @@ import io
 import json
 import math
 import os
+import pathlib
 import subprocess
 import sys
 import threading
@@ -396,3 +397,18 @@ def test_json_never_holds_nan(tmp_path):
     cli.write_json({"a": math.nan, "b": [1.0, math.inf], "c": np.float64(2.5), "d": np.int64(3)}, str(dest))
     assert json.loads(dest.read_text()) == {"a": None, "b": [1.0, None], "c": 2.5, "d": 3}
     assert os.path.getsize(dest) > 0
+
+
+@pytest.mark.skipif(not pathlib.Path("/dev/full").exists(), reason="no /dev/full on this system")
+def test_a_plot_that_cannot_be_written_raises():
+    """matplotlib's PNG writer drops a failed write silently; save_figure must raise instead."""
+    pytest.importorskip("matplotlib")
+    from mkc_stream.plots import _plt, save_figure
+
+    plt = _plt()
+    fig = plt.figure()
+    try:
+        with pytest.raises(OSError):
+            save_figure(fig, "/dev/full")
+    finally:
+        plt.close(fig)

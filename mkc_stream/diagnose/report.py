@@ -110,6 +110,8 @@ def plots(diag, directory) -> list:
         import matplotlib.pyplot as plt
     except ImportError:
         return []
+    from ..plots import save_figure
+
     out = pathlib.Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     eng = diag.engine
@@ -139,7 +141,7 @@ def plots(diag, directory) -> list:
     ax.legend(fontsize=8)
     paths.append(out / "residual_time.png")
     fig.tight_layout()
-    fig.savefig(paths[-1], dpi=110)
+    save_figure(fig, paths[-1])
     plt.close(fig)
 
     v = ev.fit.v
@@ -154,7 +156,7 @@ def plots(diag, directory) -> list:
     ax.set_title("where on the sphere the residual departs", fontsize=9)
     paths.append(out / "sphere.png")
     fig.tight_layout()
-    fig.savefig(paths[-1], dpi=110)
+    save_figure(fig, paths[-1])
     plt.close(fig)
 
     from scipy.signal import welch
@@ -172,7 +174,7 @@ def plots(diag, directory) -> list:
     ax.legend(fontsize=8)
     paths.append(out / "spectrum.png")
     fig.tight_layout()
-    fig.savefig(paths[-1], dpi=110)
+    save_figure(fig, paths[-1])
     plt.close(fig)
 
     for name, x in frame.aux.items():
@@ -197,7 +199,7 @@ def plots(diag, directory) -> list:
         ax.legend(fontsize=8)
         paths.append(out / f"aux_{name}.png")
         fig.tight_layout()
-        fig.savefig(paths[-1], dpi=110)
+        save_figure(fig, paths[-1])
         plt.close(fig)
     return paths
 
