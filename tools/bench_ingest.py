@@ -5,6 +5,7 @@
     python tools/bench_ingest.py --quick             # 10^5-sample replay
     python tools/bench_ingest.py --pty-seconds 60    # also: live over a pty at 1 kHz for 60 s
     python tools/bench_ingest.py --json out/bench_ingest.json
+    python tools/bench_ingest.py --readers           # only: the recording reader on 1, 10, 100 MB inputs
 
 Measures:
   - decode rate of every serial decoder (bytes fed in 4 KB chunks) and of the CAN decoders
@@ -13,6 +14,9 @@ Measures:
   - replay of a 10^6-sample recording at 1 kHz (1000 s of data) through `mkc-stream replay`:
     target >= 20x faster than real time
   - optionally `mkc-stream live` over a pty at 1 kHz: samples lost (target 0) and CPU use
+  - --readers: `read_recording` on inputs of 1, 10 and 100 MB (a valid recording, one line of
+    garbage, a header of many commas, the last also with the header-line limit lifted), each in a
+    fresh process: seconds and peak memory per MB, which must stay flat (linear reading)
 """
 from __future__ import annotations
 
@@ -178,13 +182,82 @@ def bench_pty(seconds, rate=1000):
             "cpu_percent_live": obj["cpu_percent"], "emulator": err.strip()}
 
 
+_READ_ONE = """
+import json, sys, time
+from mkc_stream.io import recording
+if sys.argv[2] == "lift":
+    recording.MAX_HEADER_LINE = 1 << 40
+
+
+def hwm():   # peak resident memory of this process in kB (VmHWM; ru_maxrss survives exec: the parent's)
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM"))
+
+
+base = hwm()
+t0 = time.perf_counter()
+try:
+    rec = recording.read_recording(sys.argv[1])
+    out = f"{len(rec)} samples, {len(rec.bad_rows)} bad rows"
+except recording.RecordingError as exc:
+    out = f"RecordingError, {len(str(exc))}-character message"
+dt = time.perf_counter() - t0
+peak = hwm() - base
+print(json.dumps({"seconds": dt, "peak_MB": peak / 1024, "outcome": out}))
+"""
+
+
+def reader_inputs(kind, mb, path):
+    """Write an input of about ``mb`` MB: a valid recording, one line of garbage, or a header of many commas."""
+    size = int(mb * 1e6)
+    if kind == "recording":
+        n = size // 31                       # ~31 bytes per row of t, mx, my, mz
+        rng = np.random.default_rng(0)
+        write_recording(path, np.arange(n) / 100.0, rng.normal(0, 30, (n, 3)).round(3), None, {"units.mag": "uT"})
+    elif kind == "garbage":                  # printable bytes, no line ending, no NUL
+        rng = np.random.default_rng(1)
+        path.write_bytes((rng.integers(33, 127, size, dtype=np.uint8)).tobytes())
+    else:                                    # a header row of many commas (repeated names), then one row
+        k = (size - 20) // 4
+        path.write_text("t,mx,my,mz" + ",x" * k + "\n0,1,2,3" + ",0" * k + "\n")
+    return path.stat().st_size / 1e6
+
+
+def bench_readers(sizes=(1, 10, 100)):
+    cases = [("recording", ""), ("garbage", ""), ("commas", ""), ("commas", "lift")]
+    res = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind, mode in cases:
+            for mb in sizes:
+                path = pathlib.Path(tmp) / f"{kind}_{mb}.csv"
+                real = reader_inputs(kind, mb, path)
+                r = subprocess.run([sys.executable, "-c", _READ_ONE, str(path), mode or "-"], capture_output=True,
+                                   text=True, check=True, cwd=pathlib.Path(__file__).resolve().parents[1])
+                row = json.loads(r.stdout)
+                row.update(kind=kind + (" (header-line limit lifted)" if mode else ""), MB=real)
+                res.append(row)
+                print(f"  {row['kind']:38s} {real:7.1f} MB: {row['seconds']:7.3f} s "
+                      f"({row['seconds'] / real:6.3f} s/MB), peak +{row['peak_MB']:7.1f} MB "
+                      f"({row['peak_MB'] / real:5.2f} MB/MB); {row['outcome']}")
+                path.unlink()
+    return res
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="10^5-sample replay instead of 10^6")
     p.add_argument("--pty-seconds", type=float, default=0.0, help="also run live over a pty at 1 kHz this long")
     p.add_argument("--json", help="write the figures here")
+    p.add_argument("--readers", action="store_true", help="only the recording reader on 1, 10, 100 MB inputs")
     a = p.parse_args(argv)
     res = {}
+    if a.readers:
+        print("read_recording, each input in a fresh process (peak = max RSS growth while reading):")
+        res["readers"] = bench_readers()
+        if a.json:
+            pathlib.Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+            pathlib.Path(a.json).write_text(json.dumps(res, indent=2))
+        return 0
     print("decoders (100k samples each, 4 KB chunks):")
     res["decoders"] = bench_decoders(100_000)
     for k, v in res["decoders"].items():

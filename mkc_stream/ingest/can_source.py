@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 
+from ..io.recording import excerpt
 from .source import BaseSource, SourceError, SourceLost
 
 MAX_BATCH = 1000
@@ -57,7 +58,7 @@ class CanBusSource(BaseSource):
                 # the interface could not parse what the adapter sent: one damaged frame
                 out += self._decode(msgs)
                 msgs = []
-                self.decoder.count_bad(f"frame the interface could not parse: {exc}")
+                self.decoder.count_bad(f"frame the interface could not parse: {excerpt(str(exc), 120, quote=False)}")
                 continue
             except (can.CanError, OSError) as exc:
                 self._flush(force=True)

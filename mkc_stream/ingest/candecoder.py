@@ -3,10 +3,12 @@
 ``MagFrameDecoder`` reads the built-in layout (:mod:`.canframe`); ``DbcDecoder`` (in
 :mod:`.dbc`) reads any layout through a DBC file. Both count frames of other ids as ignored and
 take ``t`` from the message timestamp (the interface's receive time on a live bus, the logged
-time in a log file).
+time in a log file). A frame stamped NaN, infinite or negative (a damaged log) is a bad frame,
+never a sample: it would make phantom gaps and drops.
 """
 from __future__ import annotations
 
+import math
 from collections import Counter
 
 from .canframe import DEFAULT_CAN_ID, decode_mag_frame
@@ -29,11 +31,18 @@ class CanDecoder:
         self.meta: dict[str, str] = {}
         self._bad_since_good = 0
 
-    def count_bad(self, reason: str):
+    def count_bad(self, reason: str, explains_missing: bool = True):
+        """One damaged frame; ``explains_missing``: it may be a frame that the sequence counter will
+        show missing (a frame of another id cannot be)."""
         self.counts.bad_frames += 1
-        self._bad_since_good += 1
+        if explains_missing:
+            self._bad_since_good += 1
         if len(self.bad_reasons) < self.MAX_REASONS:
             self.bad_reasons.append(reason)
+
+    def owns(self, msg) -> bool:
+        """Whether ``msg`` has an id this decoder reads (else it is ignored)."""
+        return True
 
     def _count_seq(self, tracker, seq: int):
         """Drops from the counter: missing numbers not explained by bad frames since the last good one
@@ -51,6 +60,11 @@ class CanDecoder:
         for msg in messages:
             if msg.is_error_frame:
                 self.counts.ignored += 1
+                continue
+            t = msg.timestamp
+            if not 0.0 <= t < math.inf:           # NaN fails too
+                self.count_bad(f"id {msg.arbitration_id:#x}: time stamp {t!r} is not a finite time >= 0",
+                               self.owns(msg))
                 continue
             self.ids_seen[msg.arbitration_id] += 1
             s = self.decode(msg)
@@ -73,6 +87,9 @@ class MagFrameDecoder(CanDecoder):
         self.can_id = int(can_id)
         self._seq = SeqTracker(1 << 16)
         self.meta = {"can_id": hex(self.can_id), "seq_modulus": "65536"}
+
+    def owns(self, msg) -> bool:
+        return msg.arbitration_id == self.can_id
 
     def decode(self, msg) -> Sample | None:
         if msg.arbitration_id != self.can_id:

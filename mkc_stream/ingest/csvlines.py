@@ -32,7 +32,9 @@ class CsvDecoder(LineDecoder):
 
     def _set_header(self, names: list[str]):
         if any(not n for n in names) or len(set(names)) != len(names):
-            raise BadFrame(f"header with empty or duplicate column names: {names}")
+            from ..io.recording import excerpt   # here: importing this module stays free of numpy
+
+            raise BadFrame(f"header with empty or duplicate column names: {excerpt(','.join(names))}")
         self.columns = names
         ix = names.index
         self._ti, self._mi = ix("t"), [ix(c) for c in ("mx", "my", "mz")]

@@ -12,6 +12,7 @@ import math
 import os
 from dataclasses import dataclass
 
+from ..io.recording import excerpt
 from .candecoder import CanDecoder
 from .counters import SeqTracker
 from .sample import ACC_COLUMNS, GYRO_COLUMNS, Sample
@@ -132,6 +133,9 @@ class DbcDecoder(CanDecoder):
                                f"{', '.join(m.name for m in hits)}; write MESSAGE.{e.signal}")
         return hits[0]
 
+    def owns(self, msg) -> bool:
+        return msg.arbitration_id in self._messages
+
     def _value(self, entry) -> float:
         return self._latest.get(entry[0], math.nan)
 
@@ -143,7 +147,7 @@ class DbcDecoder(CanDecoder):
         try:
             values = m.decode(bytes(msg.data), decode_choices=False, scaling=True)
         except Exception as exc:  # noqa: BLE001 - cantools raises several error types for bad data
-            self.count_bad(f"{m.name}: {exc}")
+            self.count_bad(f"{m.name}: {excerpt(str(exc), 120, quote=False)}")
             return None
         for col, mm, sig, scale in self._entries:
             if mm is m:

@@ -71,7 +71,9 @@ def open_log(path, *, can_id=None, dbc=None, mapping=None):
     from .logs import CanLogSource, RecordingSource, is_can_log
 
     path = pathlib.Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        raise SourceError(f"{path} is a directory, not a recording or a CAN log")
+    if not path.exists():
         raise SourceError(f"no such file: {path}")
     if is_can_log(path):
         return CanLogSource(path, can_decoder(can_id, dbc, mapping, host_time=False))

@@ -19,7 +19,17 @@ Format (the project's recording spec)::
   comment"``, ``"dropout"``) followed by ``": "`` and the details.
 * Blank lines carry no sample and are skipped. A last line without a line ending is accepted when
   it parses completely (it cannot be told from a complete row); a ``.gz`` stream that ends early
-  always makes its last line bad.
+  always makes its last line bad, and a corrupt one (a failed gzip check) is not read at all
+  (deflate cannot say where the damage starts).
+* Metadata lines and the header row hold at most :data:`MAX_HEADER_LINE` bytes each and no NUL
+  byte; an input breaking this is binary, not a recording, and is refused after a bounded read.
+  A metadata key given twice with different values is an error (which one holds is unknown).
+* ``units.mag`` is free text (default ``uT``); :data:`UT_UNITS` are microtesla, for which the
+  calibration checks the fitted field against Earth's (15-100 uT); :data:`OTHER_MAG_UNITS`
+  (``counts``, ``raw``, ``G`` ...) are read the same but skip that check, and any other value
+  gives a :class:`RecordingWarning`: the fit does not depend on the unit, so refusing the file
+  would refuse good data, but skipping the check must not be silent.
+* Error messages quote at most 80 characters of the input (:func:`excerpt`).
 * A gap is a time step larger than :data:`GAP_FACTOR` (2.5) times the median positive time step
   (a robust nominal period that ignores the gaps themselves); :meth:`Recording.counts` reports
   how many there are.
@@ -40,6 +50,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import tempfile
 import warnings
 import zlib
@@ -53,9 +64,11 @@ __all__ = [
     "REQUIRED",
     "Recording",
     "RecordingError",
+    "RecordingWarning",
     "bundled_recording",
     "bundled_recording_path",
     "bundled_recordings",
+    "excerpt",
     "load_broad",
     "load_cave_survey_json",
     "load_ck_explorer_csv",
@@ -184,31 +197,161 @@ class Recording:
 # ----------------------------------------------------------------------------------------------
 
 
+#: bytes of one metadata or header line; a longer one is not a recording (a transposed table,
+#: binary data): reading stops there instead of echoing or splitting megabytes of garbage
+MAX_HEADER_LINE = 65536
+#: bytes of (decompressed) text read at most: an endless input (``/dev/zero``) or a gzip bomb
+#: ends with an error instead of filling the memory (2 GiB is ~40 million rows)
+MAX_INPUT_BYTES = 2 << 30
+_READ = 1 << 20
+_GZ_MAGIC = b"\x1f\x8b"
+_EOL = re.compile(rb"\r\n?|\n")
+
+
+def excerpt(text, limit: int = 80, quote: bool = True) -> str:
+    """``text`` (str or bytes) for a message, quoted unless ``quote`` is False: at most ``limit``
+    characters, control characters escaped, and how much was left out. Error messages never
+    echo more of an input."""
+    unit = "bytes" if isinstance(text, (bytes, bytearray)) else "characters"
+    head = text[:limit]
+    if unit == "bytes":
+        head = bytes(head).decode("utf-8", "replace")
+    shown = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in head)
+    more = len(text) - limit
+    q = "'" if quote else ""
+    return f"{q}{shown}{q}" + (f"... ({more} more {unit})" if more > 0 else "")
+
+
+def _open_chunks(path: pathlib.Path, state: dict):
+    """Decompressed content of ``path`` in chunks, gunzipped when it is gzip (by magic bytes).
+
+    Sets ``state["damage"]`` when a gzip stream ends early (a cut file: what came before is
+    right); a corrupt one (a failed check) raises :class:`RecordingError`.
+    """
+    try:
+        f = open(path, "rb")
+    except IsADirectoryError:
+        raise RecordingError(f"{path} is a directory, not a recording file") from None
+    with f:
+        data = f.read(_READ)
+        if data[:2] != _GZ_MAGIC:
+            while data:
+                yield data
+                data = f.read(_READ)
+            return
+        state["gzip"] = True
+        yield from _gunzip(f, data, state, path)
+
+
+def _gunzip(f, data: bytes, state: dict, path):
+    d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    while True:
+        try:
+            out = d.decompress(data, _READ)    # bounded output per call: a gzip bomb is read in steps
+        except zlib.error as exc:
+            # deflate cannot say where damage starts: what came before it may be wrong too
+            raise RecordingError(f"{path}: the gzip stream is corrupt ({exc}); its content cannot be "
+                                 f"trusted, so it is not read") from None
+        data = d.unconsumed_tail
+        if out:
+            yield out
+        if d.eof:
+            data = d.unused_data or f.read(_READ)
+            if len(data) == 1:
+                data += f.read(1)
+            if data[:2] != _GZ_MAGIC:          # the end, or padding after the last member
+                return
+            d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        elif not data and not out:
+            data = f.read(_READ)
+            if not data:
+                state["damage"] = "the gzip stream is truncated (it ends before its end marker)"
+                return
+
+
+class _PreambleCheck:
+    """Checks the lines up to the header row while the bytes arrive, so that a binary or endless
+    input is refused after a bounded read: each such line holds at most MAX_HEADER_LINE bytes and
+    no NUL byte. Line ends are those of :func:`_decode` (``\\r\\n``, ``\\r``, ``\\n``)."""
+
+    def __init__(self, path):
+        self.path = path
+        self.pos = 0          # start of the line being checked
+        self.seen = 0         # bytes before this hold no line end and no NUL (each byte is scanned once)
+        self.lineno = 0
+        self.done = False
+
+    def feed(self, buf: bytearray, eof: bool):
+        if self.pos == 0 and self.lineno == 0 and buf[:2] in (b"\xff\xfe", b"\xfe\xff"):
+            raise RecordingError(f"{self.path}: UTF-16 text; a recording is UTF-8 (or ASCII) text")
+        while not self.done:
+            start = max(self.pos, self.seen)
+            m = _EOL.search(buf, start, min(len(buf), self.pos + MAX_HEADER_LINE + 2))
+            if m is not None and m.group() == b"\r" and m.end() == len(buf) and not eof:
+                m = None                        # may be the first half of \r\n
+            if m is None:
+                tail = len(buf) - self.pos
+                if tail > MAX_HEADER_LINE:
+                    self._check(buf, self.pos, self.pos + MAX_HEADER_LINE + 1, self.lineno + 1)
+                if eof:
+                    if tail:                    # the header row without a line ending
+                        self._check(buf, self.pos, len(buf), self.lineno + 1)
+                        self.done = bool(buf[self.pos:].strip())
+                    return
+                if buf.find(b"\0", start) >= 0:
+                    self._check(buf, self.pos, len(buf), self.lineno + 1)
+                self.seen = max(self.pos, len(buf) - 1)   # a final \r is looked at again
+                return
+            self.lineno += 1
+            self._check(buf, self.pos, m.start(), self.lineno)
+            line = bytes(buf[self.pos:m.start()]).strip()
+            self.pos = m.end()
+            if line.startswith(b"\xef\xbb\xbf"):
+                line = line[3:].strip()
+            if line and not line.startswith(b"#"):
+                self.done = True
+
+    def _check(self, buf, a, b, lineno):
+        if buf.find(b"\0", a, b) >= 0:
+            raise RecordingError(f"{self.path}: line {lineno} holds NUL bytes before the header row: "
+                                 f"binary data, not a recording (a text CSV)")
+        if b - a > MAX_HEADER_LINE:
+            raise RecordingError(f"{self.path}: line {lineno} is longer than {MAX_HEADER_LINE} bytes before "
+                                 f"the header row ends (it starts {excerpt(bytes(buf[a:a + 40]))}...): "
+                                 f"not a recording (a transposed table or binary data?)")
+
+
+def _read_input(path: pathlib.Path, check_preamble: bool = False) -> tuple[bytearray, str | None]:
+    """The (gunzipped) bytes of ``path`` and why a gzip stream ended early (None when it did not).
+
+    At most MAX_INPUT_BYTES are read; with ``check_preamble`` the lines up to the header row are
+    checked as they arrive (:class:`_PreambleCheck`).
+    """
+    state: dict = {}
+    buf = bytearray()
+    pre = _PreambleCheck(path) if check_preamble else None
+    for chunk in _open_chunks(path, state):
+        buf += chunk
+        if len(buf) > MAX_INPUT_BYTES:
+            raise RecordingError(f"{path}: more than {MAX_INPUT_BYTES >> 20} MiB of text; too large for "
+                                 f"a recording (or an endless input)")
+        if pre is not None and not pre.done:
+            pre.feed(buf, False)
+    if pre is not None and not pre.done:
+        pre.feed(buf, True)
+    damage = state.get("damage")
+    if damage is not None and not buf:
+        raise RecordingError(f"{path}: {damage}, and holds no data; not a readable recording")
+    return buf, damage
+
+
 def _read_bytes(path: pathlib.Path) -> tuple[bytes, bool]:
     """File content, gunzipped when it is gzip (by magic bytes); True if the gz stream ends early."""
-    raw = path.read_bytes()
-    if raw[:2] != b"\x1f\x8b":
-        return raw, False
-    parts = []
-    truncated = False
-    while raw:
-        d = zlib.decompressobj(16 + zlib.MAX_WBITS)
-        try:
-            parts.append(d.decompress(raw))
-            parts.append(d.flush())
-        except zlib.error:
-            truncated = True
-            break
-        if not d.eof:
-            truncated = True
-            break
-        raw = d.unused_data
-        if raw and raw[:2] != b"\x1f\x8b":  # trailing padding after the last member
-            break
-    return b"".join(parts), truncated
+    buf, damage = _read_input(path)
+    return bytes(buf), damage is not None
 
 
-def _decode(data: bytes) -> str:
+def _decode(data) -> str:
     text = data.decode("utf-8", errors="replace")
     if text.startswith("\ufeff"):
         text = text[1:]
@@ -369,65 +512,119 @@ def _drop_decreasing(t, keep_cols, labels, bad, what="t"):
     return t, keep_cols, labels
 
 
-def _parse_meta_line(line: str, meta: dict[str, str]) -> None:
+def _parse_meta_line(line: str, meta: dict[str, str], where: dict[str, int] | None = None,
+                     lineno: int = 0, path=None) -> None:
     content = line.strip()[1:].strip()
     if not content:
         return
     if ":" in content:
         key, value = content.split(":", 1)
         key = key.strip()
+        value = value.strip()
         if key:
-            meta[key] = value.strip()
+            if where is not None and key in meta and meta[key] != value:
+                # which line holds is unknown: keeping either would be a silent guess
+                raise RecordingError(
+                    f"{path}: lines {where[key]} and {lineno}: metadata {excerpt(key, 40)} is given twice "
+                    f"with different values, {excerpt(meta[key], 40)} and {excerpt(value, 40)}")
+            meta[key] = value
+            if where is not None:
+                where.setdefault(key, lineno)
             return
     meta["comment"] = f"{meta['comment']}; {content}" if "comment" in meta else content
+
+
+#: ``units.mag`` values read as microtesla, the unit of the physical field-range check (15-100 uT)
+UT_UNITS = ("uT", "µT", "microtesla")
+#: other ``units.mag`` values of the spec: the fit is the same, the field-range check does not apply
+OTHER_MAG_UNITS = ("nT", "mG", "G", "gauss", "T", "counts", "raw", "LSB")
+
+
+class RecordingWarning(UserWarning):
+    """The recording is read, but something in it deserves a look (an unknown unit ...)."""
+
+
+def _check_unit(path, meta: dict[str, str]) -> None:
+    """Warn about a ``units.mag`` the spec does not name: the field-range check is then skipped."""
+    unit = meta.get("units.mag", "").strip()
+    known = {u.lower() for u in UT_UNITS + OTHER_MAG_UNITS}
+    if unit and unit.lower() not in known:
+        warnings.warn(f"{path}: unknown magnetometer unit {excerpt(unit, 40)} (units.mag); the fit does not "
+                      f"depend on it, but the field-range check of uT data is skipped (known units: "
+                      f"{', '.join(UT_UNITS + OTHER_MAG_UNITS)})", RecordingWarning, stacklevel=3)
+
+
+def _header(text: str, path, damage: str | None) -> tuple[dict[str, str], str, int, int]:
+    """``(meta, header row, its line number, where the body starts)``: metadata lines, then the header.
+
+    Each such line holds at most MAX_HEADER_LINE characters and no NUL (:class:`_PreambleCheck`
+    refuses them earlier on bytes; this is the same rule on the decoded text).
+    """
+    meta: dict[str, str] = {}
+    where: dict[str, int] = {}
+    pos = 0
+    lineno = 0
+    n = len(text)
+    while pos < n:
+        end = text.find("\n", pos, pos + MAX_HEADER_LINE + 1)
+        if end < 0:
+            end = n if n - pos <= MAX_HEADER_LINE else pos + MAX_HEADER_LINE + 1
+        line = text[pos:end]
+        lineno += 1
+        if "\0" in line:
+            raise RecordingError(f"{path}: line {lineno} holds NUL bytes before the header row: "
+                                 f"binary data, not a recording (a text CSV)")
+        if len(line) > MAX_HEADER_LINE:
+            raise RecordingError(f"{path}: line {lineno} is longer than {MAX_HEADER_LINE} characters before "
+                                 f"the header row ends (it starts {excerpt(line[:40])}...): not a recording "
+                                 f"(a transposed table or binary data?)")
+        pos = end + 1
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            _parse_meta_line(s, meta, where, lineno, path)
+            continue
+        return meta, line, lineno, pos
+    what = "is empty" if not meta else "holds only metadata lines (no header row)"
+    note = f" ({damage})" if damage else ""
+    raise RecordingError(f"{path}: the file {what}{note}; a recording needs a header row "
+                         f"with at least {','.join(REQUIRED)} and data rows")
 
 
 def read_recording(path) -> Recording:
     """Read a recording file (``.csv`` or ``.csv.gz``; gzip is recognised by its magic bytes).
 
     Raises :class:`RecordingError` for a file that is empty, holds only metadata, has a malformed
-    header or lacks a required column (``t``, ``mx``, ``my``, ``mz``). Bad rows never raise: they
-    are reported in :attr:`Recording.bad_rows` (see the module documentation for the rules).
+    header, lacks a required column (``t``, ``mx``, ``my``, ``mz``), gives one metadata key two
+    different values, is a directory, is binary (a NUL byte, or a line longer than
+    MAX_HEADER_LINE bytes, before the header row ends), is a gzip stream damaged before any data,
+    or holds more than MAX_INPUT_BYTES; an input is read only as far as needed to tell. Bad rows
+    never raise: they are reported in :attr:`Recording.bad_rows` (see the module documentation
+    for the rules). A ``units.mag`` that the spec does not name gives a :class:`RecordingWarning`.
+    Time and memory are linear in the size of the input.
     """
     path = pathlib.Path(path)
-    data, truncated = _read_bytes(path)
+    data, damage = _read_input(path, check_preamble=True)
+    truncated = damage is not None
     text = _decode(data)
     del data
-    meta: dict[str, str] = {}
-    pos = 0
-    lineno = 0
-    header = None
-    while pos < len(text):
-        end = text.find("\n", pos)
-        if end < 0:
-            end = len(text)
-        line = text[pos:end]
-        lineno += 1
-        pos = end + 1
-        s = line.strip()
-        if not s:
-            continue
-        if s.startswith("#"):
-            _parse_meta_line(s, meta)
-            continue
-        header = line
-        break
-    if header is None:
-        what = "is empty" if not meta else "holds only metadata lines (no header row)"
-        raise RecordingError(f"{path}: the file {what}; a recording needs a header row "
-                             f"with at least {','.join(REQUIRED)} and data rows")
-    header_line = lineno
+    meta, header, header_line, pos = _header(text, path, damage)
     names = [c.strip() for c in header.split(",")]
     if any(not n for n in names):
-        raise RecordingError(f"{path}: line {header_line}: empty column name in header {header.strip()!r}")
-    dup = sorted({n for n in names if names.count(n) > 1})
+        raise RecordingError(f"{path}: line {header_line}: empty column name in header {excerpt(header.strip())}")
+    seen: set[str] = set()
+    dup = sorted({n for n in names if n in seen or seen.add(n)})   # linear: a header may be huge
     if dup:
-        raise RecordingError(f"{path}: line {header_line}: duplicate column name(s) {dup} in header")
-    missing = [c for c in REQUIRED if c not in names]
+        shown = ", ".join(excerpt(n, 40) for n in dup[:5]) + (f" and {len(dup) - 5} more" if len(dup) > 5 else "")
+        raise RecordingError(f"{path}: line {header_line}: duplicate column name(s) {shown} in header")
+    missing = [c for c in REQUIRED if c not in seen]
     if missing:
         raise RecordingError(
             f"{path}: line {header_line}: missing required column(s) {', '.join(missing)}; "
-            f"the header has {', '.join(names)} but a recording needs {', '.join(REQUIRED)}")
+            f"the header has {len(names)} column(s), {excerpt(', '.join(names))}, "
+            f"but a recording needs {', '.join(REQUIRED)}")
+    _check_unit(path, meta)
 
     body = text[pos:] if pos <= len(text) else ""
     del text
@@ -668,7 +865,8 @@ def load_ck_explorer_csv(path, nominal_rate_hz: float = 1.0) -> Recording:
         raise RecordingError(f"{path}: the file is empty")
     missing = [c for c in ("mx", "my", "mz") if c not in names]
     if missing:
-        raise RecordingError(f"{path}: line {lineno}: missing column(s) {', '.join(missing)} in header {names}")
+        raise RecordingError(f"{path}: line {lineno}: missing column(s) {', '.join(missing)} in header "
+                             f"{excerpt(', '.join(names))}")
     first = lineno + 1
     body = text[pos:] if pos <= len(text) else ""
     mi = [names.index(c) for c in ("mx", "my", "mz")]
