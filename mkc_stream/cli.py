@@ -12,6 +12,7 @@ import json
 import math
 import os
 import sys
+import warnings
 import time
 
 EXIT_OK, EXIT_REJECTED, EXIT_USAGE = 0, 1, 2
@@ -373,6 +374,17 @@ def _quiet_broken_pipe() -> int:
     return EXIT_BROKEN_PIPE
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings about the user's input (a reader's RecordingWarning) as one line in the tool's voice;
+    any other warning keeps Python's format (it is for a developer)."""
+    from .io.recording import RecordingWarning
+
+    if issubclass(category, RecordingWarning):
+        print(f"mkc-stream: warning: {message}", file=sys.stderr if file is None else file)
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def main(argv=None) -> int:
     """The exit-code contract in one place (module docstring); returns the code, never raises for
     the user's input or environment (argparse's own exits included)."""
@@ -389,7 +401,9 @@ def main(argv=None) -> int:
 
         args.recording = str(bundled_recording_path())
     try:
-        code = args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            code = args.func(args)
         sys.stdout.flush()           # a closed pipe shows here, not in the interpreter's exit
         return code
     except UsageError as exc:

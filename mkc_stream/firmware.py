@@ -362,6 +362,7 @@ def reason_kind(text: str) -> str:
 # the C port's records are the reference's own types
 from .calib.streaming import Calibration as CCalibration  # noqa: E402
 from .calib.streaming import CheckpointEvent as CCheckpointEvent  # noqa: E402
+from .units import is_microtesla  # noqa: E402
 
 
 class CMagCalibrator:
@@ -379,7 +380,7 @@ class CMagCalibrator:
         lib.dll.mkc_mag_config_default(C.byref(self._cfg))
         _fill_config(lib, self._cfg.stream, 9, 1, window, estep_every, stream_kw)
         self._cfg.policy = {"fifo": 0, "direction": 1}[policy]
-        self._cfg.unit_ut = int(unit.lower() in ("ut", "microtesla", "µt"))
+        self._cfg.unit_ut = int(is_microtesla(unit))
         self._cfg.init_samples = int(init_samples or 0)
         r = self.rules
         for k, v in (("min_coverage", r.min_coverage), ("max_condition", r.max_condition),

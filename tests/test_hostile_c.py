@@ -31,8 +31,6 @@ pytestmark = pytest.mark.skipif(WHY is not None, reason=f"C port not buildable h
 
 CORPUS = FW.FIRMWARE_DIR / "tests" / "malformed"
 CORPUS_FILES = sorted(p.name for p in CORPUS.iterdir()) if CORPUS.is_dir() else []
-#: a known bug of the Python reader: free text, then a `comment:` key, raises KeyError
-PY_KEYERROR = {"meta_text_then_comment_conflict.csv"}
 
 
 @pytest.fixture(scope="module")
@@ -138,9 +136,7 @@ def test_gzip_is_refused_with_the_reason(replay, tmp_path):
 
 # ---- the corpus and random damage -----------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(
-    raises=KeyError, reason="read_recording raises KeyError on free text then a conflicting 'comment:' key"))
-    if n in PY_KEYERROR else n for n in CORPUS_FILES])
+@pytest.mark.parametrize("name", CORPUS_FILES)
 def test_malformed_corpus_agrees(replay, name):
     path = CORPUS / name
     py = assert_agree(replay, path)

@@ -412,3 +412,29 @@ def test_a_plot_that_cannot_be_written_raises():
             save_figure(fig, "/dev/full")
     finally:
         plt.close(fig)
+
+
+def test_a_reader_warning_is_one_line_in_the_tools_voice(tmp_path, capsys):
+    """An unknown unit warns (the field-range check is skipped) as 'mkc-stream: warning: ...'; the Greek
+    mu spelling of microtesla is a known unit, so the range check applies and nothing is warned."""
+    s = synthetic_mag(seed=3, N=600)
+    for unit, warned in (("furlongs", True), ("\u03bcT", False)):
+        path = tmp_path / f"rec_{warned}.csv"
+        write_recording(path, s.t, s.raw, meta={"units.mag": unit})
+        main(["calibrate", str(path), "--quiet"])
+        err = capsys.readouterr().err
+        lines = [ln for ln in err.splitlines() if "warning" in ln]
+        if warned:
+            assert len(lines) == 1 and lines[0].startswith("mkc-stream: warning:") and "furlongs" in lines[0]
+        else:
+            assert lines == []
+
+
+def test_the_field_range_check_applies_to_every_microtesla_spelling():
+    from mkc_stream.calib.acceptance import check
+
+    q = {"coverage": 0.9, "condition": 10.0, "outlier_fraction": 0.0, "residual_rms": 0.1}
+    for unit in ("uT", "\u00b5T", "\u03bcT", "microtesla", " UT "):
+        ok, why = check(q, 500.0, unit)
+        assert not ok and "physical range" in why, unit
+    assert check(q, 500.0, "counts")[0]

@@ -519,3 +519,14 @@ def test_can_log_byte_flips(tmp_path, logs, suffix, flips):
     if len(out) < N_FRAMES:         # a frame lost is seen: bad, dropped (counter hole), ignored or cut
         seen = c["bad_frames"] + c["drops"] + d["ignored"] + d["truncated"] + d["seq_resets"]
         assert seen > 0 or d.get("stopped_early")
+
+
+def test_comment_lines_accumulate_and_never_conflict(tmp_path):
+    """Free-text lines and `comment:` keys are notes: joined in order (a KeyError before), while any
+    other key given twice with different values is refused."""
+    p = tmp_path / "notes.csv"
+    p.write_text("# a note\n# comment: x\n# comment: y\nt,mx,my,mz\n0,1,2,3\n")
+    assert read_recording(p).meta["comment"] == "a note; x; y"
+    p.write_text("# sensor: A\n# sensor: B\nt,mx,my,mz\n0,1,2,3\n")
+    with pytest.raises(RecordingError, match="given twice"):
+        read_recording(p)

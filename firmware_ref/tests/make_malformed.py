@@ -122,9 +122,9 @@ def cases() -> dict[str, bytes]:
     c["meta_same_twice.csv"] = b"# units.mag: uT\n#units.mag:uT  \n" + H.encode() + b"0,1,2,3\n"
     c["meta_free_text.csv"] = b"# just a note\n# another: with colon\n#: empty key\n" + H.encode() + b"0,1,2,3\n"
     c["meta_comment_key.csv"] = b"# comment: a\n# comment: a\n" + H.encode() + b"0,1,2,3\n"
-    c["meta_comment_conflict.csv"] = b"# comment: a\n# comment: b\n" + H.encode() + b"0,1,2,3\n"
+    c["meta_comment_twice.csv"] = b"# comment: a\n# comment: b\n" + H.encode() + b"0,1,2,3\n"
     c["meta_text_then_comment_key.csv"] = b"# a note\n# comment: a note\n" + H.encode() + b"0,1,2,3\n"
-    c["meta_text_then_comment_conflict.csv"] = b"# a note\n# comment: x\n" + H.encode() + b"0,1,2,3\n"
+    c["meta_text_then_comment_other.csv"] = b"# a note\n# comment: x\n" + H.encode() + b"0,1,2,3\n"
     c["meta_invalid_utf8_keys.csv"] = b"# \xff: 1\n# \xfe: 2\n" + H.encode() + b"0,1,2,3\n"
     c["meta_unit_odd.csv"] = b"# units.mag: \xc2\xb5T\n" + H.encode() + b"0,1,2,3\n"
     # the 64 KiB limit of metadata and header lines (bytes, then characters)

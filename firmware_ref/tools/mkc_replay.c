@@ -411,10 +411,23 @@ static int parse_int(const char *s, int *out)
     return 0;
 }
 
+/* ASCII case-insensitive equality (strcasecmp is POSIX, not C99) */
+static int same_ascii_nocase(const char *a, const char *b)
+{
+    for (; *a && *b; a++, b++) {
+        int x = (*a >= 'A' && *a <= 'Z') ? *a - 'A' + 'a' : *a, y = (*b >= 'A' && *b <= 'Z') ? *b - 'A' + 'a' : *b;
+        if (x != y)
+            return 0;
+    }
+    return *a == *b;
+}
+
+/* mkc_stream/units.py MICROTESLA, compared as Python's str.lower() does: uT, the micro sign
+ * (U+00B5) or Greek mu (U+03BC) followed by T, or microtesla, in any ASCII case */
 static int unit_is_ut(const char *u)
 {
-    return strcmp(u, "uT") == 0 || strcmp(u, "ut") == 0 || strcmp(u, "UT") == 0 || strcmp(u, "Ut") == 0 ||
-           strcmp(u, "microtesla") == 0 || strcmp(u, "\xc2\xb5T") == 0 || strcmp(u, "\xc2\xb5t") == 0;
+    return same_ascii_nocase(u, "uT") || same_ascii_nocase(u, "microtesla") || same_ascii_nocase(u, "\xc2\xb5T") ||
+           same_ascii_nocase(u, "\xce\xbcT") || same_ascii_nocase(u, "\xce\x9cT");
 }
 
 static int run_mag(const char *path, int window, int K, int policy, int init_samples, int want_checkpoints)

@@ -490,10 +490,10 @@ static int comment_put(meta_state *m, const char *p, size_t n)
     return 0;
 }
 
-/* One metadata line (read_recording's _parse_meta_line): units.mag is kept; a key given twice with
- * different values refuses the file (1, with the key in *conflict), checked for all keys but
- * "comment" after the header (order does not matter there); -1: out of memory. */
-static int read_meta(recording *rec, meta_state *m, const char *p, size_t n, const char **conflict)
+/* One metadata line (read_recording's _parse_meta_line): units.mag is kept; free text and "comment:"
+ * lines accumulate; other keys are collected and checked for conflicting values after the header
+ * (meta_conflict: order does not matter there). 0, or -1: out of memory. */
+static int read_meta(recording *rec, meta_state *m, const char *p, size_t n)
 {
     const char *colon, *key, *val;
     size_t kn, vn;
@@ -517,12 +517,9 @@ static int read_meta(recording *rec, meta_state *m, const char *p, size_t n, con
     val = colon + 1;
     vn = n - (size_t)(colon + 1 - p);
     strip(&val, &vn);
-    if (kn == 7 && memcmp(key, "comment", 7) == 0) {
-        if (m->have_comment && !same_text(m->comment, m->cn, val, vn)) {
-            *conflict = "comment";
-            return 1;
-        }
-        m->cn = 0;
+    if (kn == 7 && memcmp(key, "comment", 7) == 0) {   /* notes accumulate, as free text does */
+        if (m->have_comment && comment_put(m, "; ", 2) != 0)
+            return -1;
         m->have_comment = 1;
         return comment_put(m, val, vn);
     }
@@ -753,7 +750,7 @@ int recording_read(recording *rec, const char *path, int keep_bad_rows)
     /* metadata lines, then the header; each holds no NUL and at most MAX_HEADER_LINE characters */
     for (p = text; p < end;) {
         char *nl = (char *)memchr(p, '\n', (size_t)(end - p)), *le = nl ? nl : end;
-        const char *s, *conflict = NULL;
+        const char *s;
         size_t nchar = 0, kc;
         lineno++;
         if (memchr(p, '\0', (size_t)(le - p))) {
@@ -774,18 +771,12 @@ int recording_read(recording *rec, const char *path, int keep_bad_rows)
         }
         s = skip_space(p, le);
         if (s < le && *s == '#') {
-            int st = read_meta(rec, &m, p, (size_t)(le - p), &conflict);
+            int st = read_meta(rec, &m, p, (size_t)(le - p));
             if (st < 0) {
                 free(text);
                 free(m.e);
                 free(m.comment);
                 return fail(&r, "out of memory reading the file");
-            }
-            if (st > 0) {
-                free(text);
-                free(m.e);
-                free(m.comment);
-                return fail(&r, "line %ld: metadata '%s' is given twice with different values", lineno, conflict);
             }
         } else if (s < le) {
             header = p;

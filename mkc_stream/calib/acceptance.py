@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validation import MKCInputError
+from ..units import is_microtesla
 
 #: Earth's field is 22-67 uT at the surface; wider bounds leave room for local anomalies.
 EARTH_FIELD_UT = (15.0, 100.0)
@@ -73,7 +74,7 @@ def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules 
     rel = quality.get("residual_rms", np.inf) / field if field > 0 else np.inf
     if not rel <= rules.max_residual_rel:
         fails.append(f"fit error {rel:.1%} of the field > {rules.max_residual_rel:.0%}")
-    if unit.lower() in ("ut", "microtesla", "µt"):
+    if is_microtesla(unit):
         lo, hi = rules.field_range_ut
         if not lo <= field <= hi:
             fails.append(f"fitted field {field:.1f} uT outside the physical range [{lo:g}, {hi:g}] uT")

@@ -59,6 +59,8 @@ from typing import ClassVar, Iterable, Mapping
 
 import numpy as np
 
+from ..units import MICROTESLA, OTHER_MAG_UNITS
+
 __all__ = [
     "GAP_FACTOR",
     "REQUIRED",
@@ -521,7 +523,9 @@ def _parse_meta_line(line: str, meta: dict[str, str], where: dict[str, int] | No
         key, value = content.split(":", 1)
         key = key.strip()
         value = value.strip()
-        if key:
+        if key == "comment":          # notes accumulate, as free-text lines do: never a conflict
+            content = value
+        elif key:
             if where is not None and key in meta and meta[key] != value:
                 # which line holds is unknown: keeping either would be a silent guess
                 raise RecordingError(
@@ -534,10 +538,9 @@ def _parse_meta_line(line: str, meta: dict[str, str], where: dict[str, int] | No
     meta["comment"] = f"{meta['comment']}; {content}" if "comment" in meta else content
 
 
-#: ``units.mag`` values read as microtesla, the unit of the physical field-range check (15-100 uT)
-UT_UNITS = ("uT", "µT", "microtesla")
-#: other ``units.mag`` values of the spec: the fit is the same, the field-range check does not apply
-OTHER_MAG_UNITS = ("nT", "mG", "G", "gauss", "T", "counts", "raw", "LSB")
+#: ``units.mag`` values read as microtesla (the unit of the physical field-range check) and the
+#: spec's other units: one list, in mkc_stream/units.py
+UT_UNITS, OTHER_MAG_UNITS = MICROTESLA, OTHER_MAG_UNITS
 
 
 class RecordingWarning(UserWarning):
