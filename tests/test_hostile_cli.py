@@ -20,7 +20,8 @@ import pytest
 from mkc_stream import cli
 from mkc_stream.calib.synthetic import synthetic_mag
 from mkc_stream.cli import main
-from mkc_stream.ingest.live import QueuedReader, Run
+from mkc_stream.ingest.live import Run
+from mkc_stream.ingest.threaded import QueuedReader
 from mkc_stream.ingest.pacing import FakeClock, Paced
 from mkc_stream.ingest.sample import Sample
 from mkc_stream.ingest.source import BaseSource

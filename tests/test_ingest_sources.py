@@ -20,7 +20,6 @@ from mkc_stream.ingest.logs import CanLogSource, RecordingSource
 from mkc_stream.ingest.recorder import RecordingWriter
 from mkc_stream.ingest.serial_source import SerialSource
 from mkc_stream.ingest.source import BaseSource, Source
-from mkc_stream.ingest.threaded import Threaded
 from mkc_stream.ingest.vectornav import encode_vn
 from mkc_stream.io.recording import read_recording, write_recording
 
@@ -198,19 +197,6 @@ def test_paced_releases_bad_times_at_once():
     while not paced.eof:
         got += paced.read(10.0)
     assert len(got) == 4 and fc.slept == pytest.approx(5.0)
-
-
-# --- reader thread ---------------------------------------------------------------------------------
-
-def test_threaded_delivers_everything_then_the_failure():
-    src = ListSource(samples_at(range(100)), per_read=9, fail=SourceLost("port gone"))
-    th = Threaded(src)
-    got = []
-    with pytest.raises(SourceLost, match="port gone"):
-        while True:
-            got += th.read(0.5)
-    th.close()
-    assert [s.seq for s in got] == list(range(100))
 
 
 # --- the recorder ----------------------------------------------------------------------------------

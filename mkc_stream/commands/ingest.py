@@ -295,7 +295,7 @@ def _execute(args, source, cal, command, out_path):
 
 
 def cmd_live(args) -> int:
-    from ..ingest.live import QueuedReader
+    from ..ingest.threaded import QueuedReader
 
     _check_outputs(args, raw_out=args.raw_out)
     # units are known before the port opens for every built-in decoder (DBC: from the signal)
@@ -307,7 +307,7 @@ def cmd_live(args) -> int:
 
 
 def cmd_record(args) -> int:
-    from ..ingest.live import QueuedReader
+    from ..ingest.threaded import QueuedReader
 
     is_can = any(hasattr(args, k) for k in ("interface", "channel"))
     raw_out = args.raw_out or (_default_raw_out(args.out) if is_can else None)
