@@ -7,18 +7,21 @@ from .._validation import MKCInputError
 from .ellipsoid import (EllipsoidFit, calibration_from_geometry, check_geometry_of_samples, design_matrix,
                         geometry_from_theta, gross_outlier_mask, normalisation_for, raw_geometry, robust_sphere_fit,
                         sphere_theta)
+from .geometric import GeometricMKCEM
 from .quality import quality_figures
 
 #: Fixed bandwidth of method "mkc" (the paper's MKC column): weights exp(-e^2/(8 d^2)) halve at ~2.4 d.
 MKC_FIXED_SIGMA = 2.0
 
 CORE_METHODS = ("mkc-em", "mkc", "ls")
+#: The geometric MKC-EM (calib/geometric.py), started from "mkc-em"; "-dir": with direction weighting.
+GEOMETRIC_METHODS = ("mkc-em-geo", "mkc-em-geo-dir")
 
 
 def available_methods():
     from ..baselines import BASELINES
 
-    return list(CORE_METHODS) + sorted(BASELINES)
+    return list(CORE_METHODS) + list(GEOMETRIC_METHODS) + sorted(BASELINES)
 
 
 def make_estimator(method: str, **params):
@@ -26,6 +29,8 @@ def make_estimator(method: str, **params):
     from ..batch import MKCRegressor, WLSRegressor
 
     key = method.lower()
+    if key in GEOMETRIC_METHODS:
+        return GeometricMKCEM(directions=key.endswith("-dir"), **params)
     if key in ("mkc-em", "mkcem", "em"):
         return MKCRegressor(em=True, **params)
     if key == "mkc":
@@ -79,14 +84,20 @@ def robust_start(mag: np.ndarray, norm) -> np.ndarray | None:
 def fit_ellipsoid(mag, method: str = "mkc-em", *, estimator=None, **params) -> EllipsoidFit:
     """Fit the ellipsoid model (appendix, eqs. (36)-(40)) to raw magnetometer samples (N, 3).
 
-    method: "mkc-em" (default), "mkc" (fixed sigma), "ls", or a baseline name (see
-    available_methods()); or pass a ready estimator with fit/coef_. Returns hard iron b, soft
-    iron S (symmetric positive definite), field F, per-sample weights and quality figures.
+    method: "mkc-em" (default), "mkc" (fixed sigma), "ls", "mkc-em-geo" / "mkc-em-geo-dir" (the
+    geometric MKC-EM refinement of calib/geometric.py, without / with direction weighting), or a
+    baseline name (see available_methods()); or pass a ready estimator with fit/coef_ (or a
+    geometric.GeometricMKCEM). Returns hard iron b, soft iron S (symmetric positive definite),
+    field F, per-sample weights and quality figures.
     Raises EllipsoidError when the data cannot give an ellipsoid, with the reason.
     """
     mag = np.asarray(mag, dtype=np.float64)
     if mag.ndim != 2 or mag.shape[1] != 3:
         raise MKCInputError(f"mag must have shape (N, 3); got {mag.shape}")
+    if estimator is None and method.lower() in GEOMETRIC_METHODS:
+        estimator = make_estimator(method, **params)
+    if isinstance(estimator, GeometricMKCEM):    # it starts from "mkc-em", which validates mag
+        return estimator.calibrate(mag)
     bad = ~np.isfinite(mag).all(axis=1)
     if bad.any():
         raise MKCInputError(f"{int(bad.sum())} sample(s) contain NaN or inf (first at row {int(np.flatnonzero(bad)[0])})")
