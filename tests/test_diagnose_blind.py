@@ -64,7 +64,7 @@ def test_blind_benchmark_full(full_score):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not met (issue 6): best wrong effect <= 0.3 in 43% of detected trials "
+@pytest.mark.xfail(strict=True, reason="not met: best wrong effect <= 0.3 in 43% of detected trials "
                                        "against 90%; of the 36 over 0.3, 28 are a catch-all noise model (it closes "
                                        "most of any large gap by widening its replicas) and 6 the truth's declared "
                                        "confusable partner; strict, so it fails loudly once met")

@@ -1,5 +1,5 @@
 """Geometric MKC-EM (calib/geometric.py): truth recovery, robustness to bursts, direction weighting
-against a long rest phase, and the Gauss-Newton residual's Jacobian (issue 27).
+against a long rest phase, and the Gauss-Newton residual's Jacobian.
 
 Bounds are measured on the named seeds with margin (numbers in each test's docstring)."""
 import dataclasses

@@ -1,4 +1,4 @@
-"""Hostile use of the public streaming API and the calibration core (issue 26).
+"""Hostile use of the public streaming API and the calibration core.
 
 Each probe asserts the documented outcome: a ValueError (or TypeError for a wrong type) with a
 message that names the problem, and nothing changed; never an abort, a segfault or a silent run.

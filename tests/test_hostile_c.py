@@ -1,4 +1,4 @@
-"""Hostile input to the C port's replay tool (firmware_ref/build/mkc_replay, issue 26).
+"""Hostile input to the C port's replay tool (firmware_ref/build/mkc_replay).
 
 Its recording reader (firmware_ref/tools/recording.c) must agree with
 mkc_stream.io.recording.read_recording on every input: the same samples kept (bit for bit), the

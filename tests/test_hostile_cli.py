@@ -1,4 +1,4 @@
-"""Hostile input at the command line (issue 26): absurd arguments, unwritable outputs, unreadable
+"""Hostile input at the command line: absurd arguments, unwritable outputs, unreadable
 inputs, a closed pipe, a log with a pause of hours, a source faster than the calibrator.
 
 Every case asserts the exit-code contract (0 ok, 1 rejected/mismatch, 2 usage error, unreadable

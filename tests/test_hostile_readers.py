@@ -1,4 +1,4 @@
-"""Hostile input to the readers (issue 26): recordings and CAN logs that are huge, binary, cut,
+"""Hostile input to the readers: recordings and CAN logs that are huge, binary, cut,
 damaged or contradictory get a clear error of the documented class, or the samples before the
 damage with the damage counted; never a hang, a traceback or a silent loss."""
 import gzip

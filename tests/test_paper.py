@@ -48,7 +48,7 @@ def profile_loglik(X, Y, theta):
 
 
 def test_example2_case6_gap_is_the_models_bias_not_the_start():
-    """Issue 27 item 6. MKC-EM's case-6 mean error (0.094 over 200 runs, against 0.052 for the ML that
+    """Example 2, case 6. MKC-EM's case-6 mean error (0.094 over 200 runs, against 0.052 for the ML that
     knows the one-sided noise) is not the WLS start's doing: from WLS, from a high-breakdown (LTS) start
     and from the true theta the EM reaches the same fixed point (at N = 100 the LTS start moves the
     error by > 1e-4 in 2 of 400 case-6 draws, the case-6 mean by -0.0003 +- 0.0003), and that point

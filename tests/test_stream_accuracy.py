@@ -1,4 +1,4 @@
-"""Issue 3's accuracy acceptance on synthetic burst streams (tools/study_stream.py is the full study).
+"""The streaming calibrator's accuracy targets on synthetic burst streams (tools/study_stream.py is the full study).
 
 Default run: 5 seeds per burst level; `--runslow`: the 20 seeds of the study. Thresholds are the
 issue's: hard-iron error median <= 0.05 uT at 10 % bursts, <= 0.2 uT at 25 %, none above 1 uT,

@@ -1,4 +1,4 @@
-"""Streaming equals batch at every E-step checkpoint on real recordings (issue 3, item 2).
+"""Streaming equals batch at every E-step checkpoint on real recordings.
 
 The magnetometer calibrator is fed one sample at a time; whenever a sample triggers exactly one
 regular checkpoint (one E-step, no restart, no cold start, no renormalisation in between), the

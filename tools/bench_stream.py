@@ -13,7 +13,7 @@ Measures, side by side in one process after compilation:
   - the cost of one E-step + rebuild on a full window, in isolation
   - compile time (fresh interpreter, empty cache) and cached start-up time
   - the ratio against re-solving the batch problem (MKC-EM on the window) at every sample
-Targets (issue 3): >= 1e6 samples/s for the ellipsoid at W = 256, K = 32; learn_one <= 5 us.
+Targets: >= 1e6 samples/s for the ellipsoid at W = 256, K = 32; learn_one <= 5 us.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Blind benchmark of the sim-to-real gap diagnosis (issue 6).
+"""Blind benchmark of the sim-to-real gap diagnosis.
 
     python tools/blind_benchmark.py --trials 120 --out bench_blind --jobs 2
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Ground truth for magnetometer calibration on BROAD trials (issue 27): a known distortion on
+"""Ground truth for magnetometer calibration on BROAD trials: a known distortion on
 top of the dataset's calibrated imu_mag, hard-iron error and a heading error against the optical
 motion capture.
 

@@ -35,7 +35,7 @@ SEED = 20261121
 #: channels, so WLS errs by ~2 (2.02 over 200 runs here, the paper 0.47) and LAD by 0.41 (paper 0.13):
 #: the paper's case-6 data were milder than its text, and its MKC-EM 0.063 is no like-for-like target.
 #: Here MKC-EM's case-6 excess over the true-noise ML (0.094 vs 0.052) is the symmetric kernel's
-#: bias under one-sided outliers, the same from any start (tests/test_paper.py, issue 27 item 6).
+#: bias under one-sided outliers, the same from any start (tests/test_paper.py).
 PAPER_TABLE_I = {
     1: ((1.0, 1.0), {"WLS": 0.0395, "LAD": 0.0567, "MKC": 0.0508, "MKC-EM": 0.0395}),
     2: ((0.8, 1.0), {"WLS": 0.1745, "LAD": 0.0585, "MKC": 0.0545, "MKC-EM": 0.0450}),

@@ -6,7 +6,7 @@
     python tools/study_ellipsoid.py --json out/study_ellipsoid/study.json --out out/study_ellipsoid
     python tools/study_ellipsoid.py --no-real            # synthetic part only
     python tools/study_ellipsoid.py --methods mkc-em,ls,sphere,mag_cal
-    python tools/study_ellipsoid.py --truth --json out/study_ellipsoid/truth.json   # issue 27's ground truth only
+    python tools/study_ellipsoid.py --truth --json out/study_ellipsoid/truth.json   # the ground-truth part only
 
 A developer tool, run on demand (not a test); it reads the real recordings under --data-root
 (default <repo>/../shared/data) and writes nothing but the JSON, the report and the plots.
@@ -51,7 +51,7 @@ A developer tool, run on demand (not a test); it reads the real recordings under
    20261121); recovery errors are reported against (b_true, S_true) and, as the floor set by the
    dataset's own calibration, the same method's fit of the undistorted imu_mag.
 4. PNG plots in --out when matplotlib is installed.
-5. Ground truth (--truth, issue 27; runs instead of 1-4): the methods of TRUTH_METHODS on
+5. Ground truth (--truth; runs instead of 1-4): the methods of TRUTH_METHODS on
    - synthetic 10% and 25% bursts (the seeds and settings of part 1) and a synthetic rest phase (1300
      samples, 40%, at rest in the sweep's first direction reading 0.6 uT low, before a clean 2000-sample
      sweep: where the sensor lingered must not decide the fit), median and p90 over --truth-seeds seeds;
@@ -61,7 +61,7 @@ A developer tool, run on demand (not a test); it reads the real recordings under
    reporting hard-iron error |b - b_true| (uT), on BROAD also |b - b_ls@clean|, heading error (deg RMS;
    synthetic: over a level compass swing) and the time of one fit; then mkc-em, mkc-em-geo and the
    geometric refinement alone timed side by side on the same data (median of 3), and each acceptance
-   target of issue 27 read off the table.
+   target read off the table.
    Methods besides the package's: "ls-geo" (geometric least squares: calib/geometric.py's
    Gauss-Newton with unit weights, from the algebraic ls fit); scipy.optimize.least_squares with
    loss huber / soft_l1 / cauchy on the algebraic residual x^T theta - 1 ("scipy-alg-*", normalised
@@ -102,6 +102,8 @@ from mkc_stream import fit_ellipsoid  # noqa: E402
 from mkc_stream.calib.fit import CORE_METHODS, GEOMETRIC_METHODS  # noqa: E402
 from mkc_stream.calib.quality import quality_figures  # noqa: E402
 from mkc_stream.calib.synthetic import random_soft_iron, synthetic_mag  # noqa: E402
+from mkc_stream.jsonout import jsonable  # noqa: E402
+from mkc_stream.robust import mad_sd  # noqa: E402
 from broad_truth import swing_heading_rms  # noqa: E402
 
 SEED0 = 1000
@@ -168,7 +170,7 @@ SCIPY_LOSSES = {"huber": 1.345, "soft_l1": 1.287, "cauchy": 2.385}
 
 
 def _mad_scale(r):
-    return max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-12 * (1.0 + float(np.max(np.abs(r)))))
+    return max(float(mad_sd(r)), 1e-12 * (1.0 + float(np.max(np.abs(r)))))
 
 
 def make_scipy_algebraic(loss):
@@ -622,7 +624,7 @@ def real_tables(rows, real_names):
 
 
 # --------------------------------------------------------------------------------------------
-# Ground truth (issue 27): BROAD 03 / 26 with a known distortion, synthetic bursts and a rest phase
+# Ground truth: BROAD 03 / 26 with a known distortion, synthetic bursts and a rest phase
 # --------------------------------------------------------------------------------------------
 
 TRUTH_METHODS = ("ls", "mkc-em", "mkc-em-geo", "mkc-em-geo-dir", "ls-geo",
@@ -738,7 +740,7 @@ def _burst_case(i, frac):
 
 
 def truth_tables(rows, timing):
-    lines = ["", "Ground truth (issue 27). hard iron = |b - b_true| uT (synthetic: median and p90 over seeds);",
+    lines = ["", "Ground truth. hard iron = |b - b_true| uT (synthetic: median and p90 over seeds);",
              "vs clean = |b - b_ls@clean| uT (BROAD); heading = deg RMS (synthetic: level compass swing, median over",
              "seeds; BROAD: against the motion capture, see tools/broad_truth.py); time = one fit (median), ms"]
     for ds in dict.fromkeys(r["dataset"] for r in rows):
@@ -769,7 +771,7 @@ def acceptance_lines(rows, timing):
                 return r.get(k, math.nan)
         return math.nan
 
-    out = ["Acceptance (issue 27):"]
+    out = ["Acceptance targets:"]
     for geo in ("mkc-em-geo", "mkc-em-geo-dir"):
         h, hl, hf = (get("BROAD 03", m, "heading_rms_deg") for m in (geo, "ls", "ls@clean"))
         out.append(f"  [{'met' if h <= 1.1 * hl and h <= 1.1 * hf else 'NOT met'}] BROAD 03 heading {geo} {h:.3f} deg "
@@ -887,7 +889,7 @@ def main(argv=None):
     ap.add_argument("--data-root", default=str(REPO.parent / "shared" / "data"))
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--no-real", action="store_true")
-    ap.add_argument("--truth", action="store_true", help="run only the ground-truth part (issue 27): BROAD 03/26 "
+    ap.add_argument("--truth", action="store_true", help="run only the ground-truth part: BROAD 03/26 "
                     "with a known distortion, synthetic 10%%/25%% bursts and a rest phase, scipy robust losses, floors")
     ap.add_argument("--truth-seeds", type=int, default=20, help="seeds per synthetic case in --truth")
     ap.add_argument("--json", help="write every number to this JSON file")
@@ -976,30 +978,9 @@ def main(argv=None):
     if args.json:
         p = pathlib.Path(args.json)
         p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(_clean(result), indent=1, default=_jsonable, allow_nan=False))
+        p.write_text(json.dumps(jsonable(result), indent=1, default=str, allow_nan=False))
         print(f"JSON written to {p}")
     return 0
-
-
-def _clean(o):
-    """NaN/inf -> None so the file is strict JSON."""
-    if isinstance(o, dict):
-        return {str(k): _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    if isinstance(o, (float, np.floating)):
-        return float(o) if math.isfinite(o) else None
-    return o
-
-
-def _jsonable(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, tuple):
-        return list(o)
-    return str(o)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Accuracy of the streaming magnetometer calibrator (issue 3's study), beside batch fits and peers.
+"""Accuracy of the streaming magnetometer calibrator, beside batch fits and peers.
 
     python tools/study_stream.py                       # 20 seeds x {0, 10, 25 %} bursts + BROAD
     python tools/study_stream.py --seeds 5 --no-peers  # quicker
