@@ -4,7 +4,20 @@
 """
 __version__ = "0.1.0"
 
+#: name -> the module it comes from, imported on first use (PEP 562): `import mkc_stream` loads
+#: neither numba, scipy nor matplotlib
 _LAZY = {
+    # streaming estimator and magnetometer calibration
+    "StreamingMKC": "mkc_stream.stream",
+    "StreamSnapshot": "mkc_stream.stream",
+    "MagCalibrator": "mkc_stream.calib.streaming",
+    "Calibration": "mkc_stream.calib.streaming",
+    "CheckpointEvent": "mkc_stream.calib.streaming",
+    "NotCalibratedError": "mkc_stream.calib.streaming",
+    "AcceptanceRules": "mkc_stream.calib.acceptance",
+    "fit_ellipsoid": "mkc_stream.calib.fit",
+    "EllipsoidError": "mkc_stream.calib.ellipsoid",
+    # batch regression
     "MKCRegressor": "mkc_stream.batch",
     "WLSRegressor": "mkc_stream.batch",
     "mkc_loss": "mkc_stream.batch",
@@ -13,16 +26,37 @@ _LAZY = {
     "mkc_logpdf": "mkc_stream.pdf",
     "robustness_bound": "mkc_stream.bounds",
     "optimal_sigma": "mkc_stream.bounds",
-    "fit_ellipsoid": "mkc_stream.calib.fit",
-    "EllipsoidError": "mkc_stream.calib.ellipsoid",
+    # recordings, live sources, simulator
+    "Recording": "mkc_stream.io.recording",
+    "RecordingError": "mkc_stream.io.recording",
+    "read_recording": "mkc_stream.io.recording",
+    "write_recording": "mkc_stream.io.recording",
+    "open_source": "mkc_stream.ingest.opener",
+    "simulate": "mkc_stream.sim",
+    "SensorModel": "mkc_stream.sim",
+    "Trajectory": "mkc_stream.sim",
 }
 
-__all__ = sorted(_LAZY) + ["__version__"]
+#: subpackages exported by name. `diagnose` is the subpackage, not its function: the import system
+#: sets the attribute `mkc_stream.diagnose` to the subpackage whenever any of its modules is
+#: imported, so a function of that name here would not stay one. Call mkc_stream.diagnose.diagnose(recording).
+_SUBPACKAGES = ("diagnose",)
+
+__all__ = sorted([*_LAZY, *_SUBPACKAGES]) + ["__version__"]
 
 
 def __getattr__(name):
-    if name in _LAZY:
-        import importlib
+    import importlib
 
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'mkc_stream' has no attribute {name!r}")
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+    elif name in _SUBPACKAGES:
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module 'mkc_stream' has no attribute {name!r}")
+    globals()[name] = value          # later look-ups skip __getattr__
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

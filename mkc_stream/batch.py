@@ -12,6 +12,7 @@ from ._validation import LinearModelMixin, MKCInputError, as_multichannel, check
 from .kernels import OK, NOT_CONVERGED, STATUS_TEXT
 from .kernels.em import mkc_em
 from .kernels.mstep import mstep_fixed_point
+from .robust import mad_sd
 
 #: Bounds of the E-step search: the range over which the normaliser is verified against the
 #: 40-digit reference (sigma in [0.05, 1000]); d in [1e-9 a, a] with a the truncation bound.
@@ -58,8 +59,7 @@ class _Workspace:
 
 def robust_scale(R: np.ndarray) -> np.ndarray:
     """Per-channel 1.4826 * MAD of residuals (N, m), floored so it is never 0."""
-    med = np.median(R, axis=0)
-    mad = 1.4826 * np.median(np.abs(R - med), axis=0)
+    mad = mad_sd(R, axis=0)
     rms = np.sqrt(np.mean(R * R, axis=0))
     floor = 1e-12 * (1.0 + np.max(np.abs(R), axis=0))
     return np.maximum(np.where(mad > 0, mad, rms), floor)

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import warnings
 import time
+
+from .jsonout import jsonable  # noqa: F401  (re-exported: the one JSON cleaner)
 
 EXIT_OK, EXIT_REJECTED, EXIT_USAGE = 0, 1, 2
 EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 130, 141
@@ -25,19 +26,6 @@ class UsageError(Exception):
 
 class OutputError(UsageError):
     """A result file could not be written (the result itself went to stdout): exit code 2."""
-
-
-def jsonable(obj):
-    """JSON has no NaN/inf: unknown values are null (spec/machine-output.md); numpy scalars as numbers."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if hasattr(obj, "item") and hasattr(obj, "dtype"):
-        return jsonable(obj.item() if getattr(obj, "ndim", 0) == 0 else obj.tolist())
-    return obj
 
 
 def write_json(obj, dest):
@@ -332,7 +320,7 @@ def build_parser():
 
     c = sub.add_parser("calibrate", help="calibrate a magnetometer recording (batch)")
     c.add_argument("recording", type=input_file,
-                   help="recording CSV (spec/recording.md), .csv or .csv.gz; 'demo' for the bundled one")
+                   help="recording CSV (docs/spec/recording.md), .csv or .csv.gz; 'demo' for the bundled one")
     c.add_argument("--method", default="mkc-em", help="mkc-em (default), mkc, ls, or a baseline (see `mkc-stream methods`)")
     c.add_argument("--json", metavar="PATH", type=json_dest, help="write the machine-readable result ('-' for stdout)")
     c.add_argument("--plot", metavar="PNG", type=writable_path, help="save a plot of the fit (needs the [plot] extra)")

@@ -296,10 +296,10 @@ def _pct0(x):
 
 def reason_text(code: int, fails: int, v, rules=None) -> str:
     """MagCalibrator's reason strings (calib/streaming.py, calib/acceptance.py) from a C reason code."""
-    from .calib.acceptance import AcceptanceRules
+    from .calib import acceptance as A
     from .calib.streaming import MagCalibrator
 
-    rules = rules or AcceptanceRules()
+    rules = rules or A.AcceptanceRules()
     if code == REASON_NONE:
         return ""
     if code == REASON_INITIAL:
@@ -324,22 +324,19 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
     fails_txt = []
     cov, cond, out, rel, field = (float(x) for x in v[:5])
     if fails & FAIL_COVERAGE:
-        fails_txt.append(f"sphere coverage {cov:.0%} < {rules.min_coverage:.0%}: rotate the sensor through more "
-                         "orientations")
+        fails_txt.append(A.coverage_failure(cov, rules))
     if fails & FAIL_CONDITION:
-        fails_txt.append(f"condition number {cond:.3g} > {rules.max_condition:.3g}")
+        fails_txt.append(A.condition_failure(cond, rules))
     if fails & FAIL_OUTLIERS:
-        fails_txt.append(f"outlier fraction {out:.0%} > {rules.max_outlier_fraction:.0%}: too much disturbance")
+        fails_txt.append(A.outlier_failure(out, rules))
     if fails & FAIL_RESIDUAL:
-        fails_txt.append(f"fit error {rel:.1%} of the field > {rules.max_residual_rel:.0%}")
+        fails_txt.append(A.residual_failure(rel, rules))
     if fails & FAIL_FIELD_RANGE:
-        lo, hi = rules.field_range_ut
-        fails_txt.append(f"fitted field {field:.1f} uT outside the physical range [{lo:g}, {hi:g}] uT")
+        fails_txt.append(A.field_range_failure(field, rules))
     if fails & FAIL_FIELD_NONPOSITIVE:
-        fails_txt.append(f"fitted field {field} is not a positive number")
+        fails_txt.append(A.field_nonpositive_failure(field))
     if fails & FAIL_DISAGREEMENT:
-        fails_txt.append(f"not confirmed: a cold start on the same window differs by {float(v[5]):.3g} "
-                         f"(> {rules.max_disagreement_rel:.0%} of the field); continuing from the cold start")
+        fails_txt.append(A.disagreement_failure(float(v[5]), rules))
     return "; ".join(fails_txt)
 
 
@@ -547,21 +544,18 @@ def python_checkpoints(mags, window=256, estep_every=32, unit="uT", chunk=None, 
     from .calib.streaming import MagCalibrator
     from .kernels import window as K
 
-    cal = MagCalibrator(window=window, estep_every=estep_every, unit=unit, **kw)
     recs = []
-    original = cal._checkpoint
 
-    def checkpoint():
-        ev = original()
-        st = cal.stream._st
+    def checkpoint(cal):
+        ev = cal.last_event
+        st = cal.stream.views()
         trial = cal.trial if (ev.hard_iron is not None) else None
         recs.append(_record(st["cnt"][K.C_SEEN], st["cnt"][K.C_ESTEPS], st["cnt"][K.C_STATUS], st["theta"],
                             st["sigma"][0], st["d"][0], st["a"][0], cal.c0, cal.s0, ev.accepted, ev.reason, trial))
         if capture_state:
             recs[-1]["state"] = reference_state(cal)
-        return ev
 
-    cal._checkpoint = checkpoint
+    cal = MagCalibrator(window=window, estep_every=estep_every, unit=unit, on_checkpoint=checkpoint, **kw)
     mags = np.asarray(mags, dtype=np.float64)
     step = len(mags) if not chunk else chunk
     for s in range(0, max(len(mags), 1), max(step, 1)):
@@ -598,7 +592,7 @@ def reference_state(cal) -> dict:
     normalisation's pending samples are in and when no sample was rejected during it)."""
     from .kernels import window as K
 
-    st = cal.stream._st
+    st = cal.stream.views()
     count = int(st["cnt"][K.C_COUNT])
     conf = cal._confirmed
     flags = [float(cal.provisional), float(cal._failed), float(getattr(cal, "_misfit", 0)),
@@ -754,7 +748,7 @@ def stream_records_python(X, Y, n, m, window, estep_every, **kw):
 
     est = StreamingMKC(n, m, window=window, estep_every=estep_every, **kw)
     recs = []
-    st = est._st
+    st = est.views()          # read-only, and live: they follow the stream
     for k in range(X.shape[0]):
         e0 = int(st["cnt"][K.C_ESTEPS])
         status = est.learn_one(X[k], Y[k])

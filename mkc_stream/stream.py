@@ -12,6 +12,7 @@ import struct
 import zipfile
 import zlib
 from dataclasses import dataclass, replace
+from types import MappingProxyType
 
 import numpy as np
 
@@ -25,6 +26,11 @@ from .state import KERNEL_ARGS, STATE_VERSION, StreamConfig, allocate, checked_s
 #: file that cannot be opened at all
 _ARCHIVE_ERRORS = (ValueError, KeyError, TypeError, EOFError, OverflowError, NotImplementedError, struct.error,
                    zlib.error, zipfile.BadZipFile)
+
+#: the counters' names (the "cnt" state array), in kernels/window.py's order
+_COUNTER_INDEX = {name: getattr(K, "C_" + name.upper()) for name in (
+    "head", "count", "seen", "rejected", "esteps", "since", "status", "singular", "fp_iters", "last_slot",
+    "restarts", "factor_age", "factors")}
 
 STREAM_STATUS_TEXT = dict(STATUS_TEXT)
 STREAM_STATUS_TEXT.update({K.WARMING_UP: "warming up", K.REJECTED: "sample rejected (NaN/inf)"})
@@ -185,9 +191,92 @@ class StreamingMKC:
         return np.asarray(x, dtype=np.float64).reshape(m, n) @ self._st["theta"]
 
     # -- inspection ------------------------------------------------------------------------
+    # The scalars and the per-channel vectors are returned as copies (a few numbers: a value
+    # that stays as it was when read, like snapshot()); the window arrays through view(), a
+    # read-only view (no copy of W x m x n values, but it follows the stream as it learns).
     @property
     def theta(self):
         return self._st["theta"].copy()
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Kernel bandwidth per channel (a copy)."""
+        return self._st["sigma"].copy()
+
+    @property
+    def d(self) -> np.ndarray:
+        """Nominal deviation per channel (a copy)."""
+        return self._st["d"].copy()
+
+    @property
+    def a(self) -> np.ndarray:
+        """Truncation bound per channel at the last E-step (a copy)."""
+        return self._st["a"].copy()
+
+    @property
+    def counters(self) -> dict:
+        """Every counter by name (head, count, seen, rejected, esteps, since, status, singular,
+        fp_iters, last_slot, restarts, factor_age, factors), as ints."""
+        c = self._st["cnt"]
+        return {name: int(c[i]) for name, i in _COUNTER_INDEX.items()}
+
+    @property
+    def samples_seen(self) -> int:
+        return int(self._st["cnt"][K.C_SEEN])
+
+    @property
+    def samples_rejected(self) -> int:
+        return int(self._st["cnt"][K.C_REJECTED])
+
+    @property
+    def window_count(self) -> int:
+        """Samples in the window."""
+        return int(self._st["cnt"][K.C_COUNT])
+
+    @property
+    def esteps(self) -> int:
+        return int(self._st["cnt"][K.C_ESTEPS])
+
+    @property
+    def restarts(self) -> int:
+        return int(self._st["cnt"][K.C_RESTARTS])
+
+    @property
+    def status(self) -> str:
+        """The last kernel status as text (STREAM_STATUS_TEXT)."""
+        code = int(self._st["cnt"][K.C_STATUS])
+        return STREAM_STATUS_TEXT.get(code, str(code))
+
+    @property
+    def status_code(self) -> int:
+        """The last kernel status code (text: STREAM_STATUS_TEXT, or snapshot().status)."""
+        return int(self._st["cnt"][K.C_STATUS])
+
+    def view(self, name: str) -> np.ndarray:
+        """A read-only view of one state array (a name of state.STATE_FIELDS: "X", "Y", "C", "A",
+        "b", "theta", "Hes", "cnt", ...). No copy, so it follows the stream; copy it to keep a value."""
+        v = self._st[name].view()
+        v.flags.writeable = False
+        return v
+
+    def views(self) -> dict:
+        """Every state array by name as a read-only view (see view())."""
+        return {k: self.view(k) for k in self._st}
+
+    @property
+    def kernel_state(self):
+        """The live state arrays by name, writable (a read-only mapping of shared arrays). For code
+        that runs the window kernels on this stream (MagCalibrator); anything else: view()."""
+        return MappingProxyType(self._st)
+
+    @property
+    def kernel_args(self) -> tuple:
+        """The live state arrays in the window kernels' argument order (state.KERNEL_ARGS)."""
+        return self._args
+
+    def count_rejected(self, n: int) -> None:
+        """Count n samples rejected before they reached the stream (e.g. non-finite ones held back)."""
+        self._st["cnt"][K.C_REJECTED] += int(n)
 
     def snapshot(self) -> StreamSnapshot:
         c = self._st["cnt"]

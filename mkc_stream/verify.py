@@ -19,17 +19,17 @@ from .kernels.mstep import mstep_fixed_point
 
 def capture(est) -> dict:
     """The stream's warm start, taken just before feeding a sample."""
-    st = est._st
+    st = est.views()
     return {"theta": st["theta"].copy(), "sigma": st["sigma"].copy(), "d": st["d"].copy(),
             "Hes": st["Hes"].copy(), "a": st["a"].copy(), "esteps": int(st["cnt"][K.C_ESTEPS])}
 
 
 def batch_checkpoint(est, pre):
     """(theta, sigma, d) of the batch solvers on est's window from the warm start `pre`."""
-    st = est._st
+    st = est.views()
     cfg = est.config
     count = int(st["cnt"][K.C_COUNT])
-    X, Y = st["X"][:count], st["Y"][:count]
+    X, Y = st["X"][:count].copy(), st["Y"][:count].copy()      # (writable, as the kernels' signatures)
     theta = pre["theta"].copy()
     sigma, d, H = pre["sigma"].copy(), pre["d"].copy(), pre["Hes"].copy()
     N, m, n = X.shape
@@ -54,7 +54,7 @@ def batch_checkpoint(est, pre):
 
 def accumulation_drift(est) -> float:
     """max |A - A_rebuilt| / max |A|: how far the add/remove updates have drifted from the buffer."""
-    st = est._st
+    st = est.views()
     count = int(st["cnt"][K.C_COUNT])
     X, C = st["X"][:count], st["C"][:count]
     A = np.einsum("kmi,km,kmj->ij", X, C, X)

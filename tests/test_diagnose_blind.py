@@ -50,7 +50,7 @@ def full_score(tmp_path_factory):
 
 @pytest.mark.slow
 def test_blind_benchmark_full(full_score):
-    """The measured run (README): the acceptance lines it meets, at the issue's thresholds."""
+    """The measured run (docs/benchmarks.md, blind benchmark): the acceptance lines it meets, at their thresholds."""
     S = full_score
     assert S["false_alarm_rate"] <= 0.05
     assert S["named_first"] >= 0.9

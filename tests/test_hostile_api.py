@@ -83,11 +83,12 @@ def test_the_kernel_refuses_a_bad_slot_or_head_itself():
     est = trained(T=10)
     before = est.state
     x, y = np.ones((1, 3)), np.ones(1)
-    assert K.learn_one(*est._args, x, y, W) == BAD_INPUT
-    assert K.learn_one(*est._args, x, y, 11) == BAD_INPUT        # past the 10 filled slots
-    est._st["cnt"][K.C_HEAD] = 10**6
-    assert K.learn_one(*est._args, x, y, -1) == BAD_INPUT
-    est._st["cnt"][K.C_HEAD] = before["cnt"][K.C_HEAD]
+    assert K.learn_one(*est.kernel_args, x, y, W) == BAD_INPUT
+    assert K.learn_one(*est.kernel_args, x, y, 11) == BAD_INPUT        # past the 10 filled slots
+    head = est.counters["head"]
+    est.kernel_state["cnt"][K.C_HEAD] = 10**6                          # (a write: through the kernel's arrays)
+    assert K.learn_one(*est.kernel_args, x, y, -1) == BAD_INPUT
+    est.kernel_state["cnt"][K.C_HEAD] = head
     assert same_state(before, est.state)
 
 
@@ -98,13 +99,14 @@ def test_any_slot_is_used_or_refused(fed, slot):
     X, Y = linear(3, fed + 1)
     if fed:
         est.learn_many(X[:fed], Y[:fed])
-    count = int(est._st["cnt"][K.C_COUNT])
+    count = est.window_count
+    seen = est.samples_seen
     before = est.state
     if slot == -1 or 0 <= slot <= min(count, W - 1):
         status = est.learn_one(X[fed], Y[fed], slot=slot)
         assert status in VALID_STATUS
-        assert int(est._st["cnt"][K.C_SEEN]) == int(before["cnt"][K.C_SEEN]) + 1
-        assert int(est._st["cnt"][K.C_COUNT]) == count + (slot == count or (slot == -1 and count < W))
+        assert est.samples_seen == seen + 1
+        assert est.window_count == count + (slot == count or (slot == -1 and count < W))
     else:
         with pytest.raises(ValueError, match="outside the window"):
             est.learn_one(X[fed], Y[fed], slot=slot)

@@ -5,7 +5,6 @@ import pytest
 from mkc_stream.calib.quality import sphere_coverage
 from mkc_stream.calib.streaming import MagCalibrator, NotCalibratedError
 from mkc_stream.calib.synthetic import synthetic_mag
-from mkc_stream.kernels import window as K
 from mkc_stream.kernels.mstep import mstep_fixed_point
 
 
@@ -57,7 +56,7 @@ def test_nan_samples_are_counted_not_used():
     cal.update(raw)
     c = cal.counts()
     assert c["bad_frames"] == 61 and c["samples"] == 3000
-    assert np.isfinite(cal.stream._st["X"]).all() and np.isfinite(cal.stream.theta).all()
+    assert np.isfinite(cal.stream.view("X")).all() and np.isfinite(cal.stream.theta).all()
     assert np.linalg.norm(cal.accepted.hard_iron - s.hard_iron) < 0.3
 
 
@@ -78,24 +77,24 @@ def test_calibrator_checkpoint_equals_batch_on_its_window():
     s = synthetic_mag(seed=35, N=2500, burst_fraction=0.1)
     cal = MagCalibrator(window=256, estep_every=32)
     cal.update(s.raw[:2000])
-    st = cal.stream._st
-    esteps = st["cnt"][K.C_ESTEPS]
+    est = cal.stream
+    esteps = est.esteps
     # feed one sample at a time up to the next checkpoint, remembering the state just before it
     k = 2000
     while True:
-        pre = {n: st[n].copy() for n in ("theta", "sigma", "d")}
+        pre = {"theta": est.theta, "sigma": est.sigma, "d": est.d}        # (copies)
         cal.update(s.raw[k])
         k += 1
-        if st["cnt"][K.C_ESTEPS] > esteps:
+        if est.esteps > esteps:
             break
-    count = int(st["cnt"][K.C_COUNT])
-    X, Y = st["X"][:count].copy(), st["Y"][:count].copy()
+    count = est.window_count
+    X, Y = est.view("X")[:count].copy(), est.view("Y")[:count].copy()
     theta = pre["theta"].copy()
     N, m, n = X.shape
     ws = [np.empty((N, m)), np.empty((N, m)), np.empty((n, n)), np.empty(n), np.empty(n), np.zeros((n, n)), np.empty(n)]
     assert not np.allclose(cal.stream.theta, theta)       # the checkpoint moved theta
     # the M-step of the checkpoint, in batch, on the window's features with the E-step's (sigma, d)
-    mstep_fixed_point(X, Y, st["sigma"].copy(), st["d"].copy(), theta, cal.stream.config.fp_rounds,
+    mstep_fixed_point(X, Y, est.sigma, est.d, theta, cal.stream.config.fp_rounds,
                       cal.stream.config.fp_tol, *ws)
     assert np.linalg.norm(cal.stream.theta - theta) <= 1e-9 * np.linalg.norm(theta)
 

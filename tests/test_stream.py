@@ -27,14 +27,13 @@ def test_streaming_equals_batch_at_every_checkpoint(seed, W, Kk):
     checked = 0
     worst = 0.0
     for k in range(X.shape[0]):
-        st = est._st
         pre = capture(est)
         est.learn_one(X[k], Y[k])
-        if st["cnt"][K.C_ESTEPS] > pre["esteps"]:
+        if est.esteps > pre["esteps"]:
             th_b, s_b, d_b = batch_checkpoint(est, pre)
-            np.testing.assert_allclose(st["sigma"], s_b, rtol=1e-12)
-            np.testing.assert_allclose(st["d"], d_b, rtol=1e-12)
-            rel = np.linalg.norm(st["theta"] - th_b) / np.linalg.norm(th_b)
+            np.testing.assert_allclose(est.sigma, s_b, rtol=1e-12)
+            np.testing.assert_allclose(est.d, d_b, rtol=1e-12)
+            rel = np.linalg.norm(est.theta - th_b) / np.linalg.norm(th_b)
             worst = max(worst, rel)
             assert rel <= 1e-9, (k, rel)
             checked += 1
@@ -46,8 +45,8 @@ def test_no_drift_between_checkpoints():
     X, Y, _ = linear_stream(5, T=2000)
     est = StreamingMKC(4, 2, window=200, estep_every=10**9, d=[0.5, 0.5])   # one E-step, then only add/remove
     est.learn_many(X, Y)
-    st = est._st
-    count = int(st["cnt"][K.C_COUNT])
+    st = est.views()
+    count = est.window_count
     A = np.einsum("kmi,km,kmj->ij", st["X"][:count], st["C"][:count], st["X"][:count])
     b = np.einsum("kmi,km,km->i", st["X"][:count], st["C"][:count], st["Y"][:count])
     np.testing.assert_allclose(np.tril(st["A"]), np.tril(A), rtol=1e-10, atol=1e-10 * np.abs(A).max())
@@ -96,7 +95,7 @@ def test_nan_and_inf_are_rejected_and_counted():
 def test_memory_is_fixed():
     X, Y, _ = linear_stream(6, T=4000)
     est = StreamingMKC(4, 2, window=256, estep_every=32)
-    ids = {k: id(v) for k, v in est._st.items()}
+    ids = {k: id(v) for k, v in est.kernel_state.items()}
     nb = est.nbytes()
     est.learn_many(X[:1000], Y[:1000])
     tracemalloc.start()
@@ -105,7 +104,7 @@ def test_memory_is_fixed():
     cur, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert peak < 64 * 1024          # only the per-call status array (T bytes) and small objects
-    assert {k: id(v) for k, v in est._st.items()} == ids and est.nbytes() == nb
+    assert {k: id(v) for k, v in est.kernel_state.items()} == ids and est.nbytes() == nb
 
 
 def test_warming_up_reset_snapshot_predict():

@@ -12,7 +12,6 @@ import pytest
 
 from mkc_stream.calib.streaming import MagCalibrator
 from mkc_stream.io.recording import bundled_recording, load_broad, load_ck_explorer_csv, load_qmc5883l_csv
-from mkc_stream.kernels import window as K
 from mkc_stream.verify import batch_checkpoint, capture
 
 DATA = pathlib.Path(__file__).parent / "data"
@@ -30,22 +29,21 @@ def test_streaming_equals_batch_at_every_checkpoint_on_real_data(name):
     mag = RECORDINGS[name]()
     cal = MagCalibrator(window=256, estep_every=32)
     est = cal.stream
-    st = est._st
     checked = 0
     worst = 0.0
     for k in range(mag.shape[0]):
         pre = capture(est)
-        restarts = int(st["cnt"][K.C_RESTARTS])
+        restarts = est.restarts
         normalisation = (cal.c0.copy(), cal.s0)
         cal.update(mag[k])
-        regular = (int(st["cnt"][K.C_ESTEPS]) == pre["esteps"] + 1 and int(st["cnt"][K.C_RESTARTS]) == restarts
+        regular = (est.esteps == pre["esteps"] + 1 and est.restarts == restarts
                    and np.array_equal(cal.c0, normalisation[0]) and cal.s0 == normalisation[1])
         if not regular:
             continue
         th_b, s_b, d_b = batch_checkpoint(est, pre)
-        np.testing.assert_allclose(st["sigma"], s_b, rtol=1e-12)
-        np.testing.assert_allclose(st["d"], d_b, rtol=1e-12)
-        rel = np.linalg.norm(st["theta"] - th_b) / np.linalg.norm(th_b)
+        np.testing.assert_allclose(est.sigma, s_b, rtol=1e-12)
+        np.testing.assert_allclose(est.d, d_b, rtol=1e-12)
+        rel = np.linalg.norm(est.theta - th_b) / np.linalg.norm(th_b)
         worst = max(worst, rel)
         assert rel <= 1e-9, (name, k, rel)
         checked += 1

@@ -103,7 +103,7 @@ def learn_one_latency(X, Y, W=256, Kk=32, calls=20000):
 
 
 def estep_cost(est, repeat=200):
-    st = est._st
+    st = est.kernel_state     # the live arrays: the kernels run on them
     e_args = [st[k] for k in ("icfg", "fcfg", "X", "Y", "theta", "sigma", "d", "a", "Hes", "R", "ebuf", "cnt", "fst")]
     r_args = [st[k] for k in ("icfg", "fcfg", "X", "Y", "C", "A", "b", "theta", "sigma", "d", "L", "D", "xs", "tprev",
                               "cnt", "fst")]

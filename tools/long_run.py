@@ -115,7 +115,7 @@ def drift_run(samples, W=256, Kk=32, log=print):
     elapsed = time.perf_counter() - t0
     # feed sample by sample up to the next checkpoint, keeping the warm start
     X, Y = src.chunk(2 * Kk)
-    st = est._st
+    st = est.views()          # read-only and live: they follow the stream
     drift = 0.0
     for k in range(X.shape[0]):
         pre = capture(est)
@@ -136,7 +136,7 @@ def drift_run(samples, W=256, Kk=32, log=print):
     from mkc_stream import MKCRegressor
 
     count = int(st["cnt"][K.C_COUNT])
-    fresh = MKCRegressor(max_em_iter=50).fit(st["X"][:count, 0, :], st["Y"][:count, 0])
+    fresh = MKCRegressor(max_em_iter=50).fit(st["X"][:count, 0, :].copy(), st["Y"][:count, 0].copy())
     res["theta_rel_diff_vs_converged_batch"] = float(np.linalg.norm(theta - fresh.coef_) / np.linalg.norm(fresh.coef_))
     return res
 

@@ -1,5 +1,5 @@
-/* mkc_replay: replay a recording (spec/recording.md) through the C port's magnetometer calibrator
- * and print the final calibration as the `calibrate` JSON of spec/machine-output.md (the object
+/* mkc_replay: replay a recording (docs/spec/recording.md) through the C port's magnetometer calibrator
+ * and print the final calibration as the `calibrate` JSON of docs/spec/machine-output.md (the object
  * `mkc-stream calibrate REC --stream --json -` prints), or a linear stream through the generic
  * estimator. All I/O of the port lives in the host tools.
  *

@@ -1,4 +1,4 @@
-/* recording.h: reader of the recording CSV (spec/recording.md) for the host tools (not the library).
+/* recording.h: reader of the recording CSV (docs/spec/recording.md) for the host tools (not the library).
  *
  * The rules of mkc_stream/io/recording.py read_recording: optional "# key: value" metadata lines,
  * one header row with t, mx, my, mz (any other columns allowed; an empty or repeated column name

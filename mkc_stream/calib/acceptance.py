@@ -54,6 +54,39 @@ class AcceptanceRules:
             and 0 <= fr[0] < fr[1])
 
 
+# The rejection sentences, one function each: check() below and the C port's reason codes
+# (mkc_stream.firmware.reason_text) format them here, so a Python and a C rejection read the same.
+
+def coverage_failure(cov, rules: AcceptanceRules) -> str:
+    return f"sphere coverage {cov:.0%} < {rules.min_coverage:.0%}: rotate the sensor through more orientations"
+
+
+def condition_failure(cond, rules: AcceptanceRules) -> str:
+    return f"condition number {cond:.3g} > {rules.max_condition:.3g}"
+
+
+def outlier_failure(out, rules: AcceptanceRules) -> str:
+    return f"outlier fraction {out:.0%} > {rules.max_outlier_fraction:.0%}: too much disturbance"
+
+
+def residual_failure(rel, rules: AcceptanceRules) -> str:
+    return f"fit error {rel:.1%} of the field > {rules.max_residual_rel:.0%}"
+
+
+def field_range_failure(field, rules: AcceptanceRules) -> str:
+    lo, hi = rules.field_range_ut
+    return f"fitted field {field:.1f} uT outside the physical range [{lo:g}, {hi:g}] uT"
+
+
+def field_nonpositive_failure(field) -> str:
+    return f"fitted field {field} is not a positive number"
+
+
+def disagreement_failure(disagreement, rules: AcceptanceRules) -> str:
+    return (f"not confirmed: a cold start on the same window differs by {disagreement:.3g} "
+            f"(> {rules.max_disagreement_rel:.0%} of the field); continuing from the cold start")
+
+
 def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),
           disagreement=None):
     """Return (accepted, reason); reason is '' when accepted, else every failed criterion.
@@ -64,23 +97,22 @@ def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules 
     fails = []
     cov = quality.get("coverage", 0.0)
     if not cov >= rules.min_coverage:
-        fails.append(f"sphere coverage {cov:.0%} < {rules.min_coverage:.0%}: rotate the sensor through more orientations")
+        fails.append(coverage_failure(cov, rules))
     cond = quality.get("condition", np.inf)
     if not cond <= rules.max_condition:
-        fails.append(f"condition number {cond:.3g} > {rules.max_condition:.3g}")
+        fails.append(condition_failure(cond, rules))
     out = quality.get("outlier_fraction", 1.0)
     if not out <= rules.max_outlier_fraction:
-        fails.append(f"outlier fraction {out:.0%} > {rules.max_outlier_fraction:.0%}: too much disturbance")
+        fails.append(outlier_failure(out, rules))
     rel = quality.get("residual_rms", np.inf) / field if field > 0 else np.inf
     if not rel <= rules.max_residual_rel:
-        fails.append(f"fit error {rel:.1%} of the field > {rules.max_residual_rel:.0%}")
+        fails.append(residual_failure(rel, rules))
     if is_microtesla(unit):
         lo, hi = rules.field_range_ut
         if not lo <= field <= hi:
-            fails.append(f"fitted field {field:.1f} uT outside the physical range [{lo:g}, {hi:g}] uT")
+            fails.append(field_range_failure(field, rules))
     elif not (np.isfinite(field) and field > 0):
-        fails.append(f"fitted field {field} is not a positive number")
+        fails.append(field_nonpositive_failure(field))
     if disagreement is not None and not disagreement <= rules.max_disagreement_rel * abs(field):
-        fails.append(f"not confirmed: a cold start on the same window differs by {disagreement:.3g} "
-                     f"(> {rules.max_disagreement_rel:.0%} of the field); continuing from the cold start")
+        fails.append(disagreement_failure(disagreement, rules))
     return (not fails), "; ".join(fails)

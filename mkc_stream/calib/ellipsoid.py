@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._validation import MKCInputError
+from ..jsonout import jsonable
+from ..robust import mad_sd
 from .portable import jacobi_eigen, lstsq_sphere, solve3
 
 #: Fewest samples for which a 9-parameter fit is even determined; real fits want hundreds.
@@ -190,14 +192,14 @@ def robust_sphere_fit(mag: np.ndarray, passes: int = 2, k: float = 3.0):
     c = np.median(mag, axis=0)
     rad = np.linalg.norm(mag - c, axis=1)
     med = np.median(rad)
-    mad = 1.4826 * np.median(np.abs(rad - med))
+    mad = mad_sd(rad, med)
     first = np.abs(rad - med) <= k * mad if mad > 0 else None
     fit = sphere_fit(mag[first]) if first is not None and first.sum() >= 8 else sphere_fit(mag)
     for _ in range(passes):
         if fit is None:
             return None
         r = np.linalg.norm(mag - fit[0], axis=1) - fit[1]
-        mad = 1.4826 * np.median(np.abs(r - np.median(r)))
+        mad = mad_sd(r)
         keep = np.abs(r - np.median(r)) <= k * mad if mad > 0 else np.ones(len(r), bool)
         if keep.sum() < 8 or keep.all():
             return fit
@@ -263,13 +265,13 @@ class EllipsoidFit:
         return (raw - self.hard_iron) @ self.soft_iron.T
 
     def to_json(self, counts=None, status="accepted", reason=None):
-        """The `calibrate` object of spec/machine-output.md."""
+        """The `calibrate` object of docs/spec/machine-output.md."""
         out = {
             "hard_iron": [float(v) for v in self.hard_iron],
             "soft_iron": [[float(v) for v in row] for row in self.soft_iron],
             "field": float(self.field),
-            "channels": [{"sigma": _num(c.get("sigma")), "d": _num(c.get("d"))} for c in self.channels],
-            "quality": {k: _num(v) for k, v in self.quality.items()},
+            "channels": [{"sigma": jsonable(c.get("sigma")), "d": jsonable(c.get("d"))} for c in self.channels],
+            "quality": jsonable(self.quality),
             "status": status,
             "reason": reason,
             "counts": counts,
@@ -277,11 +279,3 @@ class EllipsoidFit:
         }
         return out
 
-
-def _num(v):
-    if v is None:
-        return None
-    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
-        return int(v)                 # a count (gross_outliers) stays an integer
-    v = float(v)
-    return v if np.isfinite(v) else None

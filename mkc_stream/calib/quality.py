@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..robust import mad_sd
+
 #: Equal-area direction cells: 6 bands uniform in z (= sin latitude) x 12 sectors of 30 degrees.
 N_BANDS = 6
 N_SECTORS = 12
@@ -35,7 +37,7 @@ def norm_residuals(m_cal: np.ndarray, field: float) -> np.ndarray:
 def outlier_mask(resid: np.ndarray, k: float = 3.5) -> np.ndarray:
     """|r - median| > k * 1.4826 MAD: the samples a robust scale marks as disturbed."""
     med = np.median(resid)
-    mad = 1.4826 * np.median(np.abs(resid - med))
+    mad = mad_sd(resid, med)
     if mad == 0:
         return np.zeros(resid.shape, dtype=bool)
     return np.abs(resid - med) > k * mad

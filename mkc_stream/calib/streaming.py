@@ -13,6 +13,7 @@ from dataclasses import field as dc_field
 import numpy as np
 
 from .._validation import MKCInputError
+from ..jsonout import jsonable
 from ..kernels import magwindow as MW
 from ..kernels import window as K
 from ..stream import StreamingMKC
@@ -50,12 +51,10 @@ class Calibration:
         return (np.asarray(raw, dtype=np.float64) - self.hard_iron) @ self.soft_iron.T
 
     def to_json(self, counts=None):
-        from .ellipsoid import _num
-
         return {"hard_iron": [float(v) for v in self.hard_iron],
                 "soft_iron": [[float(v) for v in r] for r in self.soft_iron],
-                "field": float(self.field), "channels": [{"sigma": _num(self.sigma), "d": _num(self.d)}],
-                "quality": {k: _num(v) for k, v in self.quality.items()},
+                "field": float(self.field), "channels": [{"sigma": jsonable(self.sigma), "d": jsonable(self.d)}],
+                "quality": jsonable(self.quality),
                 "status": "accepted" if self.accepted else "rejected", "reason": None if self.accepted else self.reason,
                 "counts": counts}
 
@@ -79,6 +78,8 @@ class MagCalibrator:
     window W, estep_every K: as StreamingMKC. policy: "direction" (default) or "fifo".
     unit: "uT" enables the physical field-range check. rules: the AcceptanceRules.
     init_samples: samples gathered before the first normalisation (median centre / radius).
+    on_checkpoint: fn(calibrator), called after every checkpoint (E-step decision) with the
+    calibrator, whose `last_event` is that checkpoint's event (as CMagCalibrator's); more with add_listener.
     """
 
     #: directions around a sphere fit of the window needed before the final feature normalisation
@@ -91,7 +92,7 @@ class MagCalibrator:
     COLD_START_ROUNDS = 10
 
     def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=AcceptanceRules(),
-                 init_samples=None, keep_history=True, **stream_kw):
+                 init_samples=None, keep_history=True, on_checkpoint=None, **stream_kw):
         if policy not in POLICIES:
             raise MKCInputError(f"policy must be one of {sorted(POLICIES)}")
         if not isinstance(unit, str):
@@ -102,6 +103,10 @@ class MagCalibrator:
         self.rules = rules
         self.policy = policy
         self.keep_history = keep_history
+        #: called as fn(calibrator) after every checkpoint (its event: `last_event`), in order
+        self._listeners = []
+        if on_checkpoint is not None:
+            self.add_listener(on_checkpoint)
         self.stream = StreamingMKC(9, 1, window=window, estep_every=estep_every, **stream_kw)
         W = self.stream.config.window
         # decisions are taken at E-step checkpoints only: with K > W no checkpoint after the first
@@ -137,8 +142,20 @@ class MagCalibrator:
         self.accepted: Calibration | None = None
         self.first_accepted_at: int | None = None
         self.history: list[CheckpointEvent] = []
+        self.last_event: CheckpointEvent | None = None
         self.last_reason = "warming up: not enough samples yet"
         return self
+
+    # -- listeners -------------------------------------------------------------------------
+    def add_listener(self, fn):
+        """Call fn(calibrator) after every checkpoint, after the listeners added before; returns fn."""
+        if not callable(fn):
+            raise MKCInputError(f"a checkpoint listener must be callable; got {fn!r}")
+        self._listeners.append(fn)
+        return fn
+
+    def remove_listener(self, fn) -> None:
+        self._listeners.remove(fn)
 
     # -- feeding ---------------------------------------------------------------------------
     def update(self, mags) -> list:
@@ -149,7 +166,7 @@ class MagCalibrator:
         if self.s0 <= 0:
             # gather init_samples finite samples to set the first normalisation (median centre, radius)
             finite = np.isfinite(mags).all(axis=1)
-            self.stream._st["cnt"][K.C_REJECTED] += int((~finite).sum())
+            self.stream.count_rejected(int((~finite).sum()))
             good = mags[finite]
             need = self.init_samples - len(self._pending)
             self._pending.extend(good[:need])
@@ -163,8 +180,8 @@ class MagCalibrator:
         events = []
         status = np.empty(mags.shape[0], dtype=np.int8)
         t = 0
-        st = self.stream._st
-        args = self.stream._args
+        st = self.stream.kernel_state
+        args = self.stream.kernel_args
         while t < mags.shape[0]:
             esteps = int(st["cnt"][K.C_ESTEPS])
             t = MW.mag_learn_many(*args, self.raw, self.slot_cell, self.slot_age, self.cell_count, self.c0,
@@ -172,16 +189,19 @@ class MagCalibrator:
             # after an E-step only: a chunk whose last samples were all rejected right after a
             # checkpoint leaves since == 0 without a new E-step (a duplicate checkpoint otherwise)
             if st["cnt"][K.C_ESTEPS] > esteps and st["cnt"][K.C_STATUS] != K.WARMING_UP and st["cnt"][K.C_SINCE] == 0:
-                events.append(self._checkpoint())
+                self.last_event = ev = self._checkpoint()
+                events.append(ev)
+                for fn in self._listeners:
+                    fn(self)
         return events
 
     # -- checkpoints -----------------------------------------------------------------------
     def _window_raw(self):
-        count = int(self.stream._st["cnt"][K.C_COUNT])
+        count = self.stream.window_count
         return self.raw[:count], count
 
     def _checkpoint(self) -> CheckpointEvent:
-        st = self.stream._st
+        st = self.stream.kernel_state
         seen, esteps = int(st["cnt"][K.C_SEEN]), int(st["cnt"][K.C_ESTEPS])
         raw, count = self._window_raw()
         if self.provisional:
@@ -258,16 +278,16 @@ class MagCalibrator:
         (nothing changes); otherwise the stream continues from the cold start, and `cold` is its
         (b, S, F, quality, sigma, d) - or None if the cold start gave no ellipsoid.
         """
-        st = self.stream._st
+        st = self.stream.kernel_state
         saved = {k: v.copy() for k, v in st.items()}
         # from the window's own trimmed sphere (a high-breakdown start, independent of the warm
         # trial); from WLS only when the window gives no sphere around the features' origin
         fit = robust_sphere_fit(raw) if raw.shape[0] >= 8 else None
         theta0 = None if fit is None else sphere_theta((fit[0] - self.c0) / self.s0, fit[1] / self.s0)
         if theta0 is None:
-            K.cold_start(*self.stream._args, self.COLD_START_ROUNDS)
+            K.cold_start(*self.stream.kernel_args, self.COLD_START_ROUNDS)
         else:
-            K.cold_start_at(*self.stream._args, self.COLD_START_ROUNDS, theta0)
+            K.cold_start_at(*self.stream.kernel_args, self.COLD_START_ROUNDS, theta0)
         try:
             geom = raw_geometry(geometry_from_theta(st["theta"]), Normalisation(self.c0.copy(), self.s0))
             bc, Sc, Fc = calibration_from_geometry(geom)
@@ -301,7 +321,7 @@ class MagCalibrator:
         return None
 
     def _set_normalisation(self, c0, s0, theta=None, restart=False):
-        st = self.stream._st
+        st = self.stream.kernel_state
         self.c0, self.s0 = np.asarray(c0, dtype=np.float64).copy(), float(s0)
         count = int(st["cnt"][K.C_COUNT])
         MW.refeature_window(st["X"], self.raw, count, self.c0, np.float64(self.s0), self._xk)
@@ -345,12 +365,11 @@ class MagCalibrator:
     def weights(self):
         """(raw samples of the window, their kernel weights): low weight = treated as disturbed."""
         raw, count = self._window_raw()
-        st = self.stream._st
-        return raw.copy(), st["C"][:count, 0] * st["d"][0] ** 2
+        return raw.copy(), self.stream.view("C")[:count, 0] * self.stream.view("d")[0] ** 2
 
     def counts(self):
-        c = self.stream._st["cnt"]
-        return {"samples": int(c[K.C_SEEN] + c[K.C_REJECTED] + len(self._pending)), "bad_frames": int(c[K.C_REJECTED]),
+        seen, rejected = self.stream.samples_seen, self.stream.samples_rejected
+        return {"samples": seen + rejected + len(self._pending), "bad_frames": rejected,
                 "drops": 0, "gaps": 0}
 
     def nbytes(self) -> int:

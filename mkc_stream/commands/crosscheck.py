@@ -25,7 +25,7 @@ def register(subparsers):
                               description="Compare the C99 port with the Python calibrator on one recording. "
                                           "Exit 0 all within tolerance, 1 mismatch, 2 unreadable input, no C port, "
                                           "or nothing compared.")
-    p.add_argument("recording", type=input_file, help="recording CSV (spec/recording.md); 'demo' for the bundled one")
+    p.add_argument("recording", type=input_file, help="recording CSV (docs/spec/recording.md); 'demo' for the bundled one")
     p.add_argument("--window", type=window_size, default=512,
                    help="samples kept in the window (default 512, as calibrate --stream)")
     p.add_argument("--estep-every", type=positive_int, default=32, help="E-step every K samples (default 32)")

@@ -50,7 +50,7 @@ def register(subparsers):
     s.set_defaults(func=cmd_simulate)
 
     d = subparsers.add_parser("diagnose", help="diagnose the sim-to-real gap of a recording")
-    d.add_argument("recording", type=input_file, help="recording CSV (spec/recording.md); 'demo' for the bundled one")
+    d.add_argument("recording", type=input_file, help="recording CSV (docs/spec/recording.md); 'demo' for the bundled one")
     d.add_argument("--json", metavar="PATH", type=json_dest, help="write the machine-readable result ('-' for stdout)")
     d.add_argument("--report", metavar="DIR", type=writable_dir, help="write report.md and PNG plots into DIR")
     d.add_argument("--exclude", action="append", default=[], metavar="EFFECT",

@@ -11,7 +11,7 @@ magnetometer's timing against the gyroscope, :mod:`.gyro_timing`), and attribute
 of the library on held-out time blocks (:mod:`.attribution`), and calls an explanation complete
 only if the residual no longer follows any recorded aux signal (:mod:`.completeness`; else
 "partially explained", naming the signal). ``Diagnosis.to_json()`` is the
-object of spec/machine-output.md; :mod:`.report` writes the human report and plots.
+object of docs/spec/machine-output.md; :mod:`.report` writes the human report and plots.
 """
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..jsonout import finite_or_none, jsonable
 from .frame import DiagnoseError
 
 __all__ = ["DiagnoseError", "Diagnosis", "diagnose", "PROFILES"]
@@ -48,47 +49,27 @@ class Diagnosis:
     evaluations: dict = field(default_factory=dict, repr=False)
 
     def to_json(self) -> dict:
-        def num(x):
-            return None if x is None or not np.isfinite(x) else float(x)
-
         effects = []
         for r in self.effects:
             effects.append({
                 "name": r.name, "testable": r.testable, "selected": r.selected, "status": r.status,
-                "reason": r.reason, "shrink": num(r.shrink) if r.testable else None,
-                "shrink_ci": r.shrink_ci, "shrink_given_selected": num(r.shrink_given_selected),
-                "gap": num(r.gap), "magnitude": _clean(r.magnitude),
-                "magnitude_ci": _clean(r.magnitude_ci)})
+                "reason": r.reason, "shrink": finite_or_none(r.shrink) if r.testable else None,
+                "shrink_ci": r.shrink_ci, "shrink_given_selected": finite_or_none(r.shrink_given_selected),
+                "gap": finite_or_none(r.gap), "magnitude": jsonable(r.magnitude),
+                "magnitude_ci": jsonable(r.magnitude_ci)})
         return {
             "verdict": self.verdict,
-            "gap_before": num(self.gap_before),
-            "gap_after": num(self.gap_after),
+            "gap_before": finite_or_none(self.gap_before),
+            "gap_after": finite_or_none(self.gap_after),
             "where": self.where,
             "effects": effects,
             "ambiguous_with": self.ambiguous_with,
             "selected": self.selected,
-            "shrink": num(self.shrink),
-            "threshold": num(self.threshold),
+            "shrink": finite_or_none(self.shrink),
+            "threshold": finite_or_none(self.threshold),
             "excluded": self.excluded,
-            "info": _clean(self.info),
+            "info": jsonable(self.info),
         }
-
-
-def _clean(obj):
-    """JSON-safe copy: numpy scalars to floats, non-finite to None."""
-    if obj is None:
-        return None
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None
-    return obj
 
 
 def _where(eng, ev, n=15):

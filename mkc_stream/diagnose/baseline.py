@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..robust import mad_sd
 from ..sim.effects.base import Evidence
 from ..sim.sensor import SensorModel
 from ..sim.trajectory import Trajectory, moving_average
@@ -43,7 +44,7 @@ def robust_sd(x) -> float:
     x = x[np.isfinite(x)]
     if x.size < 2:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    return float(mad_sd(x))
 
 
 def hf_sigma(x) -> float:

@@ -30,6 +30,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
+from ..robust import mad_sd
+
 #: robust cut of the reweighted least squares (robust standard deviations)
 CUT = 4.0
 #: the sensor must turn: median angular rate (rad/s, after K) below this is "not testable"
@@ -71,7 +73,7 @@ def _robust_lsq(X, y, ok):
         Ai = np.linalg.pinv(A, rcond=1e-10)
         th = Ai @ ((X * wt[:, None]).T @ y)
         e = y - X @ th
-        s = 1.4826 * np.median(np.abs(e[wt > 0]))
+        s = mad_sd(e[wt > 0], 0.0)
         wt = (ok & (np.abs(e) < CUT * s)).astype(float)
     A = (X * wt[:, None]).T @ X
     Ai = np.linalg.pinv(A, rcond=1e-10)

@@ -19,6 +19,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+from ..recording_rules import GAP_FACTOR
+
 
 @dataclass
 class DecodeCounts:
@@ -65,7 +67,7 @@ class GapCounter:
     them (a USB-serial adapter every few milliseconds), so shorter steps are jitter, not gaps.
     """
 
-    def __init__(self, factor: float = 2.5, warmup: int = 64, min_gap_s: float = 0.0):
+    def __init__(self, factor: float = GAP_FACTOR, warmup: int = 64, min_gap_s: float = 0.0):
         self.factor = float(factor)
         self.min_gap_s = float(min_gap_s)
         self.warmup = int(warmup)

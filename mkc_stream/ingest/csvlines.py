@@ -1,4 +1,4 @@
-"""Recording-format CSV lines over a byte stream (spec/recording.md), header first.
+"""Recording-format CSV lines over a byte stream (docs/spec/recording.md), header first.
 
 ``# key: value`` lines before the header become metadata; the header names the columns (``t``,
 ``mx``, ``my``, ``mz`` required); each following line is one sample with the device's ``t``.
@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import math
 
+from ..recording_rules import REQUIRED
 from .counters import SeqTracker
 from .decoder import BadFrame, LineDecoder, ascii_line
 from .sample import ACC_COLUMNS, GYRO_COLUMNS, Sample
-
-REQUIRED = ("t", "mx", "my", "mz")
 
 
 class CsvDecoder(LineDecoder):

@@ -20,7 +20,6 @@ pass (and so the answer to Ctrl-C) stays short.
 """
 from __future__ import annotations
 
-import math
 import signal
 import threading
 import time
@@ -28,12 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..jsonout import finite_or_none
+from ..recording_rules import HOST_TIME_MIN_GAP_S
 from .counters import GapCounter
 from .source import SourceLost
 
-
-#: with host receive times, steps shorter than this are delivery jitter, not gaps
-HOST_TIME_MIN_GAP_S = 0.1
 
 @dataclass
 class RunResult:
@@ -191,4 +189,4 @@ class Run:
     def coverage(self) -> float | None:
         ev = self.last_event
         cov = None if ev is None else ev.coverage
-        return None if cov is None or not math.isfinite(cov) else float(cov)
+        return finite_or_none(cov)

@@ -1,4 +1,4 @@
-"""File sources for replay: recording CSVs (spec/recording.md) and python-can log files.
+"""File sources for replay: recording CSVs (docs/spec/recording.md) and python-can log files.
 
 ``RecordingSource`` replays a recording through :func:`mkc_stream.io.recording.read_recording`
 (bad rows counted with line numbers, gaps by the reader's rule, drops from a ``seq`` column).
@@ -28,6 +28,7 @@ import zlib
 import numpy as np
 
 from ..io.recording import excerpt
+from ..recording_rules import HOST_TIME_MIN_GAP_S
 from .counters import DecodeCounts
 from .sample import ACC_COLUMNS, GYRO_COLUMNS, Sample
 from .source import BaseSource, SourceError
@@ -86,7 +87,7 @@ class RecordingSource(BaseSource):
         self._gap_idx = rec.gap_indices()
         if self._host:                      # the live rule for host receive times (see GapCounter)
             dt = np.diff(rec.t)
-            self._gap_idx = self._gap_idx[dt[self._gap_idx] > 0.1]
+            self._gap_idx = self._gap_idx[dt[self._gap_idx] > HOST_TIME_MIN_GAP_S]
         # drops from a seq column: missing numbers between consecutive rows (backward jump = restart)
         self._drops_cum = np.zeros(n, dtype=np.int64)
         if "seq" in rec.aux and n > 1:

@@ -11,8 +11,8 @@ PROTOCOLS = {
     "motioncal": "PJRC MotionCal 'Raw:'/'Uni:' lines (the kind of the first sample line is kept)",
     "motioncal-raw": "MotionCal 'Raw:' integer lines only",
     "motioncal-uni": "MotionCal 'Uni:' float lines only",
-    "csv": "recording-format CSV lines, header first (spec/recording.md)",
-    "binary": "the mkc binary frame (sync word, seq, device time, CRC-16; see the README)",
+    "csv": "recording-format CSV lines, header first (docs/spec/recording.md)",
+    "binary": "the mkc binary frame (sync word, seq, device time, CRC-16; docs/live-and-recording.md)",
     "vectornav": "VectorNav $VNYMR / $VNIMU ASCII with checksum",
 }
 ALIASES = {"vn": "vectornav", "vnymr": "vectornav", "vnimu": "vectornav", "mkc": "binary"}

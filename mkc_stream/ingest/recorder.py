@@ -1,6 +1,6 @@
 """Write a recording CSV incrementally, as samples arrive, so a crash loses at most a second.
 
-The file is the recording format of spec/recording.md (read back by ``read_recording``): the
+The file is the recording format of docs/spec/recording.md (read back by ``read_recording``): the
 ``# key: value`` metadata, the header, then one row per sample with floats written by ``repr``
 (bit-exact round trip). Rows go straight to the final file (no temporary name: the point is that
 what was received is on disk); every ``flush_s`` seconds the file is flushed and fsync'ed. A
@@ -21,7 +21,8 @@ import time
 import zlib
 from collections import Counter
 
-from .sample import BASE_COLUMNS, columns_for, missing_fields, row_values
+from ..recording_rules import REQUIRED
+from .sample import columns_for, missing_fields, row_values
 
 
 def _fmt(v) -> str:
@@ -99,7 +100,7 @@ class RecordingWriter:
         if self._closed:
             return
         if self.columns is None:
-            self.columns = list(BASE_COLUMNS)
+            self.columns = list(REQUIRED)
             self._header()
         if self._gz:
             self._fh.close()

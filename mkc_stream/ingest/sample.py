@@ -9,10 +9,10 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+from ..recording_rules import REQUIRED
+
 Vec3 = tuple[float, float, float]
 
-#: recording columns in the order a recorder writes them (then ``seq``, then auxiliary names)
-BASE_COLUMNS = ("t", "mx", "my", "mz")
 ACC_COLUMNS = ("ax", "ay", "az")
 GYRO_COLUMNS = ("gx", "gy", "gz")
 
@@ -39,7 +39,7 @@ def columns_for(samples) -> list[str]:
         seq |= s.seq is not None
         if s.aux:
             aux.update(dict.fromkeys(s.aux))
-    cols = list(BASE_COLUMNS)
+    cols = list(REQUIRED)           # the recorder's order: required, acc, gyro, temp, seq, auxiliary
     cols += list(ACC_COLUMNS) if acc else []
     cols += list(GYRO_COLUMNS) if gyro else []
     cols += ["temp"] if temp else []

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
+from ..recording_rules import HOST_TIME_MIN_GAP_S
 from .counters import GapCounter
 from .sample import Sample
 
@@ -54,7 +55,7 @@ class BaseSource:
         self.decoder = decoder
         self.eof = False
         self.samples = 0
-        self.gaps = GapCounter(min_gap_s=0.1 if time_source == "host" else 0.0)
+        self.gaps = GapCounter(min_gap_s=HOST_TIME_MIN_GAP_S if time_source == "host" else 0.0)
         self.meta: dict[str, str] = {"source": url, "units.mag": units_mag, "time_source": time_source}
         if decoder is not None:
             self.meta.update(getattr(decoder, "meta", {}))

@@ -59,6 +59,7 @@ from typing import ClassVar, Iterable, Mapping
 
 import numpy as np
 
+from ..recording_rules import GAP_FACTOR, REQUIRED
 from ..units import MICROTESLA, OTHER_MAG_UNITS
 
 __all__ = [
@@ -79,9 +80,6 @@ __all__ = [
     "read_recording",
     "write_recording",
 ]
-
-REQUIRED = ("t", "mx", "my", "mz")
-GAP_FACTOR = 2.5
 
 
 class RecordingError(ValueError):

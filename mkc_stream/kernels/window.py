@@ -21,6 +21,7 @@ theta is therefore the exact batch solution; in between it is the tracked one.
 import math
 
 from .._numba import kernel
+from ..robust import MAD_SCALE
 from . import OK, NOT_CONVERGED, SINGULAR, BAD_INPUT
 from .estep import estep_channel
 from .linalg import spd_solve
@@ -323,7 +324,7 @@ def restart_at(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, Hes, L, D, xs, tprev,
         med = _sorted_median(ebuf, count)
         for s in range(count):
             ebuf[s] = abs(ebuf[s] - med)
-        mad = 1.4826 * _sorted_median(ebuf, count)
+        mad = MAD_SCALE * _sorted_median(ebuf, count)
         d[i] = max(mad if mad > 0.0 else math.sqrt(acc / count), 1e-300)
     return rebuild(icfg, fcfg, X, Y, C, A, b, theta, sigma, d, L, D, xs, tprev, cnt, fst)
 

@@ -1,7 +1,7 @@
 """The effect library: ``EFFECTS[name]`` for every effect the simulator can add.
 
 One module per effect family (thermal, electrical, drift, nonlinear, alignment, noise, timing);
-names follow spec/machine-output.md.
+names follow docs/spec/machine-output.md.
 """
 from __future__ import annotations
 
