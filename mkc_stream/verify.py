@@ -1,9 +1,12 @@
 """What the batch solvers give at a streaming checkpoint: the reference the stream must equal.
 
-Used by the tests, the long-run study (tools/long_run.py) and the C port's golden vectors. At a
-checkpoint the stream runs, on the samples its window holds, one warm-started E-step (Algorithm
-2) per channel and then fp_rounds fixed-point rounds (Algorithm 1) from the theta it had before
-the checkpoint sample. `batch_checkpoint` runs the batch kernels on the same window from the same
+Used by the stream's tests and the long-run study (tools/long_run.py). Pure Python beside
+stream.py and batch.py: it does not touch the C port, whose cross-check (cport/compare.py) compares
+the port with the stream itself.
+
+At a checkpoint the stream runs, on the samples its window holds, one warm-started E-step
+(Algorithm 2) per channel and then fp_rounds fixed-point rounds (Algorithm 1) from the theta it
+had before the checkpoint sample. `batch_checkpoint` runs the batch kernels on the same window from the same
 warm start; `capture` records that warm start.
 """
 from __future__ import annotations

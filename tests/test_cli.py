@@ -1,7 +1,8 @@
-"""The command line: calibrate (human and JSON output, spec fields), exit codes, bad input; README example."""
+"""The command line: calibrate (human and JSON output, spec fields), exit codes, bad input.
+
+The README examples are run by tests/test_docs.py."""
 import json
 import pathlib
-import re
 import subprocess
 import sys
 
@@ -103,18 +104,6 @@ def test_plot_is_written(tmp_path, capsys):
 def test_console_script_and_module_entry_point():
     r = subprocess.run([sys.executable, "-m", "mkc_stream", "methods"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "mkc-em" in r.stdout
-
-
-def test_readme_python_example_runs():
-    text = (ROOT / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) >= 2
-    ns = {}
-    for block in blocks:                 # every Python example, in order, in one namespace
-        exec(compile(block, "README.md", "exec"), ns)
-    assert np.abs(ns["fit"].hard_iron - ns["s"].hard_iron).max() < 0.1
-    assert ns["model"].coef_.shape == (2,)
-    assert np.linalg.norm(ns["cal"].accepted.hard_iron - ns["s"].hard_iron) < 0.3
 
 
 def test_calibrate_stream_matches_batch_on_the_bundled_recording(capsys):

@@ -11,10 +11,12 @@ the reason.
 """
 from __future__ import annotations
 
+import ctypes
 import functools
 import json
 import math
 import os
+import pathlib
 import shutil
 import subprocess
 import sys
@@ -22,12 +24,17 @@ import sys
 import numpy as np
 import pytest
 
-from mkc_stream import firmware as FW
+from mkc_stream import cport as FW
+
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO_ROOT / "tools"))
+
+import golden as GV  # noqa: E402  (tools/golden.py: the vectors' files)
 
 WHY = FW.toolchain_problem()
 pytestmark = pytest.mark.skipif(WHY is not None, reason=f"C port not buildable here: {WHY}")
 
-INDEX = json.loads((FW.GOLDEN_DIR / "index.json").read_text())
+INDEX = json.loads((GV.GOLDEN_DIR / "index.json").read_text())
 VECTORS = {v["name"]: v for v in INDEX["vectors"]}
 MAG = [n for n, v in VECTORS.items() if v["kind"] == "mag"]
 LINEAR = [n for n, v in VECTORS.items() if v["kind"] == "linear"]
@@ -40,7 +47,6 @@ FLOAT_FREE = 1e-4
 
 
 def _libm_matches():
-    sys.path.insert(0, str(FW.REPO_ROOT / "tools"))
     from gen_golden import libm_fingerprint
 
     return libm_fingerprint() == INDEX["libm_fingerprint"]
@@ -68,9 +74,8 @@ def golden(name):
     the double build must still match it to the same tolerances (bit for bit in practice) instead of
     the comparison being skipped."""
     if LIBM_MATCHES:
-        with np.load(FW.GOLDEN_DIR / VECTORS[name]["file"]) as z:
+        with np.load(GV.GOLDEN_DIR / VECTORS[name]["file"]) as z:
             return {k: z[k] for k in z.files}
-    sys.path.insert(0, str(FW.REPO_ROOT / "tools"))
     import gen_golden
 
     _, files = gen_golden.generate(only=[name])
@@ -79,7 +84,7 @@ def golden(name):
 
 def mag_input(name):
     """The vector's stored input (checked against its SHA-256; never regenerated: see tools/gen_golden.py)."""
-    return FW.stored_input(VECTORS[name])
+    return GV.stored_input(VECTORS[name])
 
 
 def golden_records(g):
@@ -115,7 +120,6 @@ def assert_exact(cmp, recs_g, recs_c, what):
 # ---- tables and layout ---------------------------------------------------------------------------
 
 def test_generated_tables_are_current():
-    sys.path.insert(0, str(FW.REPO_ROOT / "tools"))
     from gen_firmware_tables import OUT, render
 
     assert OUT.read_text() == render(), "firmware_ref/src/mkc_tables.h is stale: python tools/gen_firmware_tables.py"
@@ -133,28 +137,28 @@ def test_state_struct_has_every_state_field():
 
 def test_golden_vectors_are_small():
     """Checkpoints under 2 MiB; the stored inputs (float64, 1.9 MiB today) under 3 MiB."""
-    checkpoints = sum(p.stat().st_size for p in FW.GOLDEN_DIR.iterdir() if p.is_file())
-    inputs = sum(p.stat().st_size for p in (FW.GOLDEN_DIR / "inputs").iterdir())
+    checkpoints = sum(p.stat().st_size for p in GV.GOLDEN_DIR.iterdir() if p.is_file())
+    inputs = sum(p.stat().st_size for p in (GV.GOLDEN_DIR / "inputs").iterdir())
     assert checkpoints < 2 * 1024 * 1024 and inputs < 3 * 1024 * 1024
 
 
 def test_every_vector_has_a_stored_input_that_passes_its_checksum():
     for v in VECTORS.values():
-        inp = FW.stored_input(v)
+        inp = GV.stored_input(v)
         first = inp["mags"] if v["kind"] == "mag" else inp["X"]
         assert len(first) == v["samples"]
 
 
 def test_a_corrupted_input_is_refused(tmp_path, monkeypatch):
     v = dict(VECTORS["cave_survey_ab"])
-    with np.load(FW.GOLDEN_DIR / v["input_file"]) as z:
+    with np.load(GV.GOLDEN_DIR / v["input_file"]) as z:
         arrays = {k: z[k].copy() for k in z.files}
     arrays["input_mags"][5, 1] = np.nextafter(arrays["input_mags"][5, 1], np.inf)    # one ulp
     (tmp_path / "inputs").mkdir()
     np.savez_compressed(tmp_path / v["input_file"], **arrays)
-    monkeypatch.setattr(FW, "GOLDEN_DIR", tmp_path)
+    monkeypatch.setattr(GV, "GOLDEN_DIR", tmp_path)
     with pytest.raises(ValueError, match="fails its checksum"):
-        FW.stored_input(v)
+        GV.stored_input(v)
 
 
 # ---- golden vectors in-process (ctypes) ----------------------------------------------------------
@@ -218,7 +222,7 @@ def test_golden_float_teacher_forced(built, name):
 def test_golden_linear(built, name, precision):
     v = VECTORS[name]
     g = golden(name)
-    inp = FW.stored_input(v)
+    inp = GV.stored_input(v)
     cfg = dict(v["config"])
     W, Kk = cfg.pop("window"), cfg.pop("estep_every")
     recs, est = FW.stream_records_c(inp["X"], inp["Y"], v["n"], v["m"], W, Kk, precision=precision, **cfg)
@@ -241,7 +245,6 @@ def test_golden_match_the_current_python_reference():
     has not moved under them): bit for bit, but for the quality figures and the condition number, which
     pass through BLAS/LAPACK and numpy's CPU-dispatched reductions (gen_golden.CPU_DEPENDENT states
     their tolerances and why)."""
-    sys.path.insert(0, str(FW.REPO_ROOT / "tools"))
     import gen_golden
 
     index, files = gen_golden.generate(only=["syn_s2_b10", "linear_s0_4x2_w64_k8"])
@@ -314,7 +317,7 @@ def test_replay_float(built, name, tmp_path):
 @pytest.mark.parametrize("name", LINEAR)
 def test_replay_linear(built, name, tmp_path):
     v = VECTORS[name]
-    inp = FW.stored_input(v)
+    inp = GV.stored_input(v)
     n, m = v["n"], v["m"]
     X, Y = inp["X"].reshape(len(inp["X"]), -1), inp["Y"]
     path = tmp_path / f"{name}.csv"
@@ -343,8 +346,7 @@ def test_replay_prints_what_calibrate_stream_prints(built, tmp_path, capsys):
 
     path = write_vector_csv("syn_s3_b25", tmp_path)
     obj, _ = replay(built / "mkc_replay", path, {"window": 256, "estep_every": 32, "policy": "direction"})
-    with FW.portable_feedback():   # a no-op now: the reference is bit-reproducible itself
-        code = main(["calibrate", str(path), "--stream", "--window", "256", "--json", "-", "--quiet"])
+    code = main(["calibrate", str(path), "--stream", "--window", "256", "--json", "-", "--quiet"])
     ref = json.loads(capsys.readouterr().out)
     assert code == 0
     for key in ref:
@@ -397,7 +399,7 @@ def test_bad_input_gives_status_codes_never_nan(built, precision):
     with np.errstate(over="ignore"):
         m = np.ascontiguousarray(raw, cal.lib.dtype)
     status = np.empty(len(m), np.int8)
-    cal.lib.dll.mkc_mag_push_many(cal._addr, cal.lib.ptr(m), len(m), status.ctypes.data_as(FW.C.POINTER(FW.C.c_int8)))
+    cal.lib.dll.mkc_mag_push_many(cal._addr, cal.lib.ptr(m), len(m), status.ctypes.data_as(ctypes.POINTER(ctypes.c_int8)))
     bad = ~np.isfinite(raw).all(axis=1) | (np.abs(raw) > 1e15).any(axis=1)
     assert (status[bad] == 6).all()                                   # MKC_REJECTED
     assert set(np.unique(status[~bad])) <= {0, 1, 2, 5}
@@ -422,7 +424,7 @@ def test_bad_input_gives_status_codes_never_nan(built, precision):
     est = FW.CStreamingMKC(4, 2, window=64, estep_every=8, precision=precision)
     st = est.learn_many(np.zeros((100, 2, 4)), np.ones((100, 2)))
     assert set(np.unique(st)) <= {2, 5} and 2 in st
-    inp = FW.stored_input(VECTORS["linear_s0_4x2_w64_k8"])
+    inp = GV.stored_input(VECTORS["linear_s0_4x2_w64_k8"])
     X, Y = inp["X"][:600].copy(), inp["Y"][:600].copy()
     X[::37, 0, 1] = np.nan
     Y[::41, 1] = np.inf
@@ -504,7 +506,7 @@ def test_valgrind_over_the_vector_suite(built, tmp_path):
 
 @pytest.mark.slow
 def test_all_golden_vectors_are_current():
-    proc = subprocess.run([sys.executable, str(FW.REPO_ROOT / "tools" / "gen_golden.py"), "--check"],
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "tools" / "gen_golden.py"), "--check"],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:]
 

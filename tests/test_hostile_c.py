@@ -23,7 +23,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mkc_stream import firmware as FW
+from mkc_stream import cport as FW
 from mkc_stream.io.recording import RecordingError, read_recording, write_recording
 
 WHY = FW.toolchain_problem()

@@ -17,9 +17,10 @@ import time
 import numpy as np
 import pytest
 
-from mkc_stream import cli
 from mkc_stream.calib.synthetic import synthetic_mag
 from mkc_stream.cli import main
+from mkc_stream.commands import calibrate as calibrate_command
+from mkc_stream.commands import common
 from mkc_stream.ingest.live import Run
 from mkc_stream.ingest.threaded import QueuedReader
 from mkc_stream.ingest.pacing import FakeClock, Paced
@@ -128,9 +129,9 @@ CASES = [
 @pytest.mark.parametrize("argv, code, fragment", CASES, ids=[" ".join(c[0])[:60] for c in CASES])
 def test_hostile_arguments(capsys, files, argv, code, fragment):
     if argv[0] == "crosscheck":
-        from mkc_stream import firmware
+        from mkc_stream import cport
 
-        if firmware.toolchain_problem():
+        if cport.toolchain_problem():
             pytest.skip("no C toolchain")
     argv = [a.format(d=files, dn=files.name) for a in argv]
     before = {p.name: p.stat().st_mtime_ns for p in files.iterdir()}
@@ -197,7 +198,7 @@ def test_top_level_handler_maps_the_environment_to_exit_codes(capsys, monkeypatc
     def boom(args):
         raise exc
 
-    monkeypatch.setattr(cli, "cmd_methods", boom)
+    monkeypatch.setattr(calibrate_command, "cmd_methods", boom)
     got, _, err = run(capsys, ["methods"])
     assert got == code and "Traceback" not in err
     if fragment is None:
@@ -242,9 +243,9 @@ def test_diagnose_planar_recording_is_refused_clearly(capsys, tmp_path):
 # --- crosscheck: no "OK" without a comparison ---------------------------------------------------
 
 def test_crosscheck_float_on_collinear_data_is_not_ok(capsys, tmp_path):
-    from mkc_stream import firmware
+    from mkc_stream import cport
 
-    if firmware.toolchain_problem():
+    if cport.toolchain_problem():
         pytest.skip("no C toolchain")
     rng = np.random.default_rng(0)
     x = np.linspace(-1, 1, 1200)[:, None] * np.array([[30.0, 20.0, 10.0]]) + 5.0 + 0.1 * rng.normal(size=(1200, 3))
@@ -319,7 +320,7 @@ class _Firehose(BaseSource):
 
 
 def test_queue_is_bounded_drops_are_counted_and_stop_is_prompt():
-    cal = cli.compiled_calibrator(512, 32)
+    cal = common.compiled_calibrator(512, 32)
     src = _Firehose()
     reader = QueuedReader(src, capacity=20000, max_read=4096)
     run_ = Run(reader, cal)
@@ -376,17 +377,17 @@ def test_queued_reader_delivers_everything_in_bounded_reads_then_the_failure():
 def test_progress_lines_without_a_terminal():
     clock = iter([0.0, 3.0, 10.5, 12.0, 21.0]).__next__
     buf = io.StringIO()
-    p = cli.Progress(clock=clock, stream=buf)
+    p = common.Progress(clock=clock, stream=buf)
     for k in range(4):
         p(f"step {k}")
     assert buf.getvalue().splitlines() == ["step 1 (10 s)", "step 3 (21 s)"]
-    quiet = cli.Progress(enabled=False, stream=io.StringIO())
+    quiet = common.Progress(enabled=False, stream=io.StringIO())
     quiet("x")
     assert quiet.stream.getvalue() == ""
 
 
 def test_calibrate_stream_reports_progress_on_stderr_when_not_a_tty(capsys, files, monkeypatch):
-    monkeypatch.setattr(cli.Progress, "EVERY_S", 0.0)
+    monkeypatch.setattr(common.Progress, "EVERY_S", 0.0)
     code, _, err = run(capsys, ["calibrate", files / "good.csv", "--stream"])
     assert code == 0 and "streaming 2000/2000 samples (100%)" in err
     code, _, err = run(capsys, ["calibrate", files / "good.csv", "--stream", "--quiet"])
@@ -395,7 +396,7 @@ def test_calibrate_stream_reports_progress_on_stderr_when_not_a_tty(capsys, file
 
 def test_json_never_holds_nan(tmp_path):
     dest = tmp_path / "x.json"
-    cli.write_json({"a": math.nan, "b": [1.0, math.inf], "c": np.float64(2.5), "d": np.int64(3)}, str(dest))
+    common.write_json({"a": math.nan, "b": [1.0, math.inf], "c": np.float64(2.5), "d": np.int64(3)}, str(dest))
     assert json.loads(dest.read_text()) == {"a": None, "b": [1.0, None], "c": 2.5, "d": 3}
     assert os.path.getsize(dest) > 0
 

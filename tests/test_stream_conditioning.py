@@ -6,20 +6,25 @@ to 2.8e-3: on clean windows the likelihood is flat in sigma and the capped E-ste
 along the ridge. That is also what kept the C float build from following the reference."""
 import json
 import pathlib
+import sys
 
 import numpy as np
 import pytest
 
-from mkc_stream import firmware as FW
+from mkc_stream import cport as FW
 from mkc_stream.stream import StreamingMKC
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-INDEX = json.loads((ROOT / "tests" / "data" / "golden" / "index.json").read_text())
+sys.path.insert(0, str(ROOT / "tools"))
+
+import golden as GV  # noqa: E402  (tools/golden.py: the vectors' files)
+
+INDEX = json.loads((GV.GOLDEN_DIR / "index.json").read_text())
 
 
 def _vector(name):
     v = next(v for v in INDEX["vectors"] if v["name"] == name)
-    return FW.stored_input(v), v["config"]
+    return GV.stored_input(v), v["config"]
 
 
 def _worst_accepted_difference(a, b):

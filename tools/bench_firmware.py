@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 from bench_stream import ellipsoid_raw, ellipsoid_stream  # noqa: E402
 from bench_stream import estep_cost as estep_numba  # noqa: E402
 
-from mkc_stream import firmware as FW  # noqa: E402
+from mkc_stream import cport as FW  # noqa: E402
 from mkc_stream.calib.streaming import MagCalibrator  # noqa: E402
 from mkc_stream.stream import StreamingMKC  # noqa: E402
 

@@ -38,10 +38,12 @@ import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
 
-from mkc_stream import firmware as FW  # noqa: E402
+import golden  # noqa: E402
+from mkc_stream import cport as FW  # noqa: E402
 
-OUT = ROOT / "tests" / "data" / "golden"
+OUT = golden.GOLDEN_DIR
 
 MAG = "mag"
 LINEAR = "linear"
@@ -130,7 +132,7 @@ def vector_input(name, source, stored):
     """The vector's input: the stored one when the vector exists (a regeneration keeps its input),
     else a new one made from its definition."""
     if name in stored:
-        return FW.stored_input(stored[name])
+        return golden.stored_input(stored[name])
     return make_input(source)
 
 
@@ -191,7 +193,7 @@ def mag_records(name, source, cfg, inp):
     arr["input_mags"] = np.ascontiguousarray(mags, "<f8")
     arr["input_t"] = np.ascontiguousarray(inp["t"], "<f8")
     meta = {"kind": MAG, "config": full, "unit": inp["unit"], "samples": int(len(mags)),
-            "input_sha256": FW.input_sha256([arr["input_mags"], arr["input_t"]]), "checkpoints": K, "anchors": len(anchors),
+            "input_sha256": golden.input_sha256([arr["input_mags"], arr["input_t"]]), "checkpoints": K, "anchors": len(anchors),
             "accepted_checkpoints": int(arr["accepted"].sum()),
             "final": None if cal.accepted is None else {"hard_iron": cal.accepted.hard_iron.tolist(),
                                                         "field": float(cal.accepted.field)}}
@@ -212,7 +214,7 @@ def linear_records(name, source, cfg, inp):
            "cnt": np.array([r["cnt"] for r in recs]).reshape(K, -1),
            "input_X": np.ascontiguousarray(X, "<f8"), "input_Y": np.ascontiguousarray(Y, "<f8")}
     meta = {"kind": LINEAR, "config": cfg, "samples": int(X.shape[0]), "n": n, "m": m,
-            "input_sha256": FW.input_sha256([arr["input_X"], arr["input_Y"]]), "checkpoints": K}
+            "input_sha256": golden.input_sha256([arr["input_X"], arr["input_Y"]]), "checkpoints": K}
     return arr, meta
 
 

@@ -55,7 +55,7 @@ class AcceptanceRules:
 
 
 # The rejection sentences, one function each: check() below and the C port's reason codes
-# (mkc_stream.firmware.reason_text) format them here, so a Python and a C rejection read the same.
+# (mkc_stream.cport.bindings.reason_text) format them here, so a Python and a C rejection read the same.
 
 def coverage_failure(cov, rules: AcceptanceRules) -> str:
     return f"sphere coverage {cov:.0%} < {rules.min_coverage:.0%}: rotate the sensor through more orientations"

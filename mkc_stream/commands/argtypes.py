@@ -188,8 +188,8 @@ def _same_file(a: str, b: str) -> bool:
 def check_new_output(path: str | None, force: bool, inputs=(), flag: str = "--out") -> None:
     """A recording output must not be one of the inputs (never, even with --force: it would be
     truncated before it is read) and must not replace an existing file unless ``force``.
-    Raises mkc_stream.cli.UsageError."""
-    from ..cli import UsageError
+    Raises mkc_stream.commands.common.UsageError."""
+    from .common import UsageError
 
     if not path:
         return

@@ -3,7 +3,7 @@
 Both run MagCalibrator's algorithm over the same recording; at every E-step checkpoint the state
 (theta, sigma, d, a, the feature normalisation) and the trial calibration (b, S, F, quality) are
 compared, and the largest relative difference per quantity is reported. Exit 0 when every quantity
-is within its tolerance (mkc_stream.firmware.TOLERANCES) and the decisions agree, 1 on a mismatch,
+is within its tolerance (mkc_stream.cport.compare.TOLERANCES) and the decisions agree, 1 on a mismatch,
 2 when the recording cannot be read, the C port cannot be built here, or nothing could be compared
 (no checkpoint at all, e.g. fewer samples than a window; for float, no well-posed checkpoint for the
 teacher-forced criterion, e.g. collinear or planar data): a comparison that was not made is not "OK".
@@ -17,22 +17,23 @@ from __future__ import annotations
 
 import sys
 
+from .common import (EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, UsageError, add_json_option, add_quiet_option,
+                     add_window_options, load_recording, write_json)
+
 
 def register(subparsers):
-    from .argtypes import input_file, json_dest, positive_int, window_size
+    from .argtypes import input_file
 
     p = subparsers.add_parser("crosscheck", help="compare the C99 port (firmware_ref/) with the Python calibrator",
                               description="Compare the C99 port with the Python calibrator on one recording. "
                                           "Exit 0 all within tolerance, 1 mismatch, 2 unreadable input, no C port, "
                                           "or nothing compared.")
     p.add_argument("recording", type=input_file, help="recording CSV (docs/spec/recording.md); 'demo' for the bundled one")
-    p.add_argument("--window", type=window_size, default=512,
-                   help="samples kept in the window (default 512, as calibrate --stream)")
-    p.add_argument("--estep-every", type=positive_int, default=32, help="E-step every K samples (default 32)")
+    add_window_options(p, "samples kept in the window (default 512, as calibrate --stream)")
     p.add_argument("--precision", choices=("double", "float", "both"), default="double",
                    help="which C build to compare (default double)")
-    p.add_argument("--json", metavar="PATH", type=json_dest, help="write the report as JSON ('-' for stdout)")
-    p.add_argument("--quiet", action="store_true", help="no human report")
+    add_json_option(p, "the report as JSON")
+    add_quiet_option(p)
     p.set_defaults(func=cmd_crosscheck)
 
 
@@ -41,8 +42,7 @@ def _fmt(x):
 
 
 def cmd_crosscheck(args) -> int:
-    from .. import firmware as FW
-    from ..cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, UsageError, load_recording, write_json
+    from .. import cport as FW
 
     rec = load_recording(args.recording)
     precisions = ("double", "float") if args.precision == "both" else (args.precision,)

@@ -16,6 +16,9 @@ import math
 import shutil
 import sys
 
+from .common import (EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, UsageError, add_json_option, add_quiet_option,
+                     add_window_options, compiled_calibrator, fmt_vec, write_json)
+
 EPILOG_SOURCE = ("SOURCE is --port PORT [--baud B] --protocol P for a serial port (PORT a device path or a "
                  "pyserial URL such as socket://host:port), or python-can's -i/--interface, -c/--channel, "
                  "-b/--bitrate [--bus-kwargs K=V ...] with --can-id ID or --dbc FILE --map COL=SIGNAL,... "
@@ -71,15 +74,15 @@ def _add_source(p):
 
 
 def _add_run(p, what="live"):
-    from .argtypes import json_dest, positive_float, positive_int
+    from .argtypes import positive_float, positive_int
 
     g = p.add_mutually_exclusive_group()
     g.add_argument("--max-samples", type=positive_int, metavar="N", help="stop after N samples")
     g.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop after S seconds (" + ("sample time" if what == "replay" else "wall clock") + ")")
     p.add_argument("--progress", action="store_true", help="show the status line even when stderr is not a terminal")
-    p.add_argument("--json", metavar="PATH", type=json_dest, help="write the machine-readable result ('-' for stdout)")
-    p.add_argument("--quiet", action="store_true", help="no human report")
+    add_json_option(p)
+    add_quiet_option(p)
 
 
 def _add_out(p, help, required=False):
@@ -91,11 +94,7 @@ def _add_out(p, help, required=False):
 
 
 def _add_calib(p):
-    from .argtypes import positive_int, window_size
-
-    p.add_argument("--window", type=window_size, default=512,
-                   help="samples kept in the calibration window (default 512, at most 65536)")
-    p.add_argument("--estep-every", type=positive_int, default=32, help="E-step every K samples (default 32)")
+    add_window_options(p, "samples kept in the calibration window (default 512, at most 65536)")
 
 
 def register(subparsers):
@@ -141,7 +140,6 @@ def register(subparsers):
 
 
 def _open_live_source(args, notify, raw_out=None):
-    from ..cli import UsageError
     from ..ingest.opener import can_decoder
     from ..ingest.source import SourceError
 
@@ -179,7 +177,6 @@ def _protocols():
 
 def _create_bus(args):
     """``can.Bus`` from python-can's flags (``--bus-kwargs`` values typed as python-can does)."""
-    from ..cli import UsageError
     from ..ingest.can_source import open_bus
     from ..ingest.source import SourceError
 
@@ -217,8 +214,6 @@ def _default_raw_out(out):
 
 def _calibrator(args, unit):
     """A MagCalibrator whose kernels are compiled now, before any port is opened."""
-    from ..cli import compiled_calibrator
-
     return compiled_calibrator(args.window, args.estep_every, unit, keep_history=False)
 
 
@@ -231,8 +226,6 @@ def _check_outputs(args, inputs=(), raw_out=None):
 
 
 def _status_printer(args, label):
-    from ..cli import _fmt_vec
-
     show = args.progress or sys.stderr.isatty()
     if not show or args.quiet:
         return None, lambda: None
@@ -248,7 +241,7 @@ def _status_printer(args, label):
             parts.append("coverage " + ("-" if cov is None else f"{cov:.0%}"))
             acc = cal.accepted
             if acc is not None:
-                parts.append(f"b {_fmt_vec(acc.hard_iron, '').strip()} F {acc.field:.4g}")
+                parts.append(f"b {fmt_vec(acc.hard_iron, '').strip()} F {acc.field:.4g}")
                 parts.append("ACCEPTED")
             else:
                 parts.append(cal.status_reason())
@@ -318,7 +311,6 @@ def cmd_record(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from ..cli import UsageError
     from ..ingest.opener import open_log
     from ..ingest.pacing import Paced
     from ..ingest.source import SourceError
@@ -383,8 +375,6 @@ def _result_json(command, src, run, result, recorder):
 
 
 def _report(command, src, run, result, recorder, obj, out):
-    from ..cli import _fmt_vec
-
     p = lambda s="": print(s, file=out)  # noqa: E731
     c = obj["counts"]
     d = obj["ingest"]
@@ -434,9 +424,9 @@ def _report(command, src, run, result, recorder, obj, out):
         p(f"  status        : REJECTED - {cal.status_reason()}")
         return
     p(f"  first accepted: after {cal.first_accepted_at} samples")
-    p(f"  hard iron b   : {_fmt_vec(acc.hard_iron, unit)}")
+    p(f"  hard iron b   : {fmt_vec(acc.hard_iron, unit)}")
     for i, row in enumerate(acc.soft_iron):
-        p(("  soft iron S   : " if i == 0 else "                  ") + _fmt_vec(row, ""))
+        p(("  soft iron S   : " if i == 0 else "                  ") + fmt_vec(row, ""))
     p(f"  field F       : {acc.field:.5g} {unit}")
     q = acc.quality
     p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit}, coverage {q['coverage']:.0%}, "
@@ -445,8 +435,6 @@ def _report(command, src, run, result, recorder, obj, out):
 
 
 def _finish(args, command, src, run, result, recorder) -> int:
-    from ..cli import EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, write_json
-
     obj = _result_json(command, src, run, result, recorder)
     if not args.quiet:
         _report(command, src, run, result, recorder, obj, sys.stderr if args.json == "-" else sys.stdout)

@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import sys
 
+from .common import (EXIT_OK, EXIT_REJECTED, Outputs, UsageError, add_json_option, add_quiet_option, load_recording,
+                     write_json)
+
 TRAJECTORIES = ("hand", "figure8", "flight")
 
 
@@ -24,8 +27,8 @@ NONNEGATIVE_PARAMS = {"tau", "sigma", "spread", "width", "q", "kurtosis", "lsb",
 
 
 def register(subparsers):
-    from .argtypes import (fraction, input_file, int_range, json_dest, nonneg_float, nonneg_int, positive_float,
-                           vector3, writable_dir, writable_path)
+    from .argtypes import (fraction, input_file, int_range, nonneg_float, nonneg_int, positive_float, vector3,
+                           writable_dir, writable_path)
 
     s = subparsers.add_parser("simulate", help="simulate a magnetometer/IMU recording with effects")
     s.add_argument("--trajectory", default="hand",
@@ -51,7 +54,7 @@ def register(subparsers):
 
     d = subparsers.add_parser("diagnose", help="diagnose the sim-to-real gap of a recording")
     d.add_argument("recording", type=input_file, help="recording CSV (docs/spec/recording.md); 'demo' for the bundled one")
-    d.add_argument("--json", metavar="PATH", type=json_dest, help="write the machine-readable result ('-' for stdout)")
+    add_json_option(d)
     d.add_argument("--report", metavar="DIR", type=writable_dir, help="write report.md and PNG plots into DIR")
     d.add_argument("--exclude", action="append", default=[], metavar="EFFECT",
                    help="leave an effect out of the library (repeatable)")
@@ -59,7 +62,7 @@ def register(subparsers):
                    help="fast: <= 60 s for 10^4 samples; full: more replicas and bootstraps, all samples (slower)")
     d.add_argument("--replicas", type=int_range(2, 1000), help="replicas per model, 2..1000 (default: by profile)")
     d.add_argument("--seed", type=nonneg_int, default=0)
-    d.add_argument("--quiet", action="store_true", help="no human report")
+    add_quiet_option(d)
     d.add_argument("--verbose", action="store_true", help="print progress")
     d.set_defaults(func=cmd_diagnose)
 
@@ -90,7 +93,6 @@ def _list_effects(out):
 def cmd_simulate(args) -> int:
     import numpy as np
 
-    from ..cli import EXIT_OK, Outputs, UsageError, load_recording
     from ..sim import SensorModel, generate, parse_effect, simulate
     from .argtypes import check_new_output
 
@@ -156,7 +158,6 @@ def _bad_rows_note(rec) -> str:
 
 
 def cmd_diagnose(args) -> int:
-    from ..cli import EXIT_OK, EXIT_REJECTED, Outputs, UsageError, load_recording, write_json
     from ..diagnose import DiagnoseError, diagnose
     from ..diagnose import report
 

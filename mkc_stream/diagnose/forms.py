@@ -15,6 +15,10 @@ replicas*, which is how a simulator would carry them.
 
 cross_axis is observed only through its antisymmetric part, a rotation against the
 accelerometer: its form is the misalignment's, and the two are always reported as ambiguous.
+
+Size: one fitting form per effect of the library, registered together in FORMS, sharing the
+design helpers (Env, the tau grids, block offsets, the noise statistics); a split into mean and
+estimated forms is possible but not done yet (the two halves share those helpers).
 """
 from __future__ import annotations
 
