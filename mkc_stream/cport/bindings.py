@@ -158,7 +158,19 @@ def _fill_config(lib, cfg, n, m, window, estep_every, config: dict):
         setattr(cfg, k, v)
 
 
-class CStreamingMKC:
+class _CoreFields:
+    """theta and the counters, read through the class's own get(): both C objects hold a core."""
+
+    @property
+    def theta(self):
+        return self.get(F_THETA)
+
+    @property
+    def cnt(self):
+        return self.get(F_CNT).astype(np.int64)
+
+
+class CStreamingMKC(_CoreFields):
     """The C port's generic stream, as StreamingMKC(n, m, window, estep_every, sigma, d, theta0, **config)."""
 
     def __init__(self, n, m=1, window=256, estep_every=32, sigma=None, d=None, theta0=None, precision="double",
@@ -198,14 +210,6 @@ class CStreamingMKC:
 
     def get(self, which: int) -> np.ndarray:
         return _get(self.lib, self._addr, 0, which)
-
-    @property
-    def theta(self):
-        return self.get(F_THETA)
-
-    @property
-    def cnt(self):
-        return self.get(F_CNT).astype(np.int64)
 
 
 def _get(lib, addr, kind, which):
@@ -267,7 +271,7 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
     return "; ".join(fails_txt)
 
 
-class CMagCalibrator:
+class CMagCalibrator(_CoreFields):
     """The C port's MagCalibrator(window, estep_every, unit, policy, rules, init_samples, **stream_kw)."""
 
     def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=None, init_samples=None,
@@ -365,13 +369,6 @@ class CMagCalibrator:
         v = self.info()["first_accepted_at"]
         return None if v < 0 else v
 
-    @property
-    def theta(self):
-        return self.get(F_THETA)
-
-    @property
-    def cnt(self):
-        return self.get(F_CNT).astype(np.int64)
 
     def status_reason(self) -> str:
         r = _MagReason()

@@ -50,6 +50,17 @@ def _text_lines(path: pathlib.Path) -> tuple[str, bool]:
     return _decode(data), truncated
 
 
+def _lines(text: str):
+    """(line number from 1, the line stripped, the offset just past its newline) for each line."""
+    pos, lineno = 0, 0
+    while pos < len(text):
+        end = text.find("\n", pos)
+        end = len(text) if end < 0 else end
+        lineno += 1
+        yield lineno, text[pos:end].strip(), end + 1
+        pos = end + 1
+
+
 def load_qmc5883l_csv(path) -> Recording:
     """tomisuarez2/MagnetometerCalibration QMC5883L capture (MIT, (c) 2025 Tomas Suarez).
 
@@ -60,15 +71,8 @@ def load_qmc5883l_csv(path) -> Recording:
     path = pathlib.Path(path)
     text, truncated = _text_lines(path)
     header_meta: dict[str, str] = {}
-    pos = 0
-    lineno = 0
-    found = False
-    while pos < len(text):
-        end = text.find("\n", pos)
-        end = len(text) if end < 0 else end
-        line = text[pos:end].strip()
-        pos = end + 1
-        lineno += 1
+    lineno, pos, found = 0, 0, False
+    for lineno, line, pos in _lines(text):
         if not line:
             continue
         if [c.strip() for c in line.split(",")] == ["mx", "my", "mz"]:
@@ -110,15 +114,8 @@ def load_ck_explorer_csv(path, nominal_rate_hz: float = 1.0) -> Recording:
     """
     path = pathlib.Path(path)
     text, truncated = _text_lines(path)
-    pos = 0
-    lineno = 0
-    names = None
-    while pos < len(text):
-        end = text.find("\n", pos)
-        end = len(text) if end < 0 else end
-        line = text[pos:end].strip()
-        pos = end + 1
-        lineno += 1
+    lineno, pos, names = 0, 0, None
+    for lineno, line, pos in _lines(text):
         if line:
             names = [c.strip() for c in line.split(",")]
             break
