@@ -530,3 +530,18 @@ def test_crosscheck_command(built, tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(FW.TOLERANCES["double"], "condition", 0.0)
     assert main(["crosscheck", str(path), "--window", "256", "--quiet"]) == 1
     assert main(["crosscheck", str(tmp_path / "missing.csv")]) == 2
+
+
+def test_field_ids_agree_between_the_introspection_header_and_the_bridge():
+    """mkc_introspect.h's MKC_F_* enum and cport's F_* ids name the same fields in the same order."""
+    import re
+
+    from mkc_stream.cport import bindings
+
+    text = (FW.FIRMWARE_DIR / "include" / "mkc_introspect.h").read_text()
+    body = text[text.index("enum {"):text.index("};", text.index("enum {"))]
+    body = re.sub(r"/\*.*?\*/", "", body, flags=re.S)
+    c_names = re.findall(r"MKC_F_([A-Z0-9_]+)", body)
+    py = sorted(((v, k[2:]) for k, v in vars(bindings).items() if re.fullmatch(r"F_[A-Z0-9_]+", k)))
+    assert [name for _, name in py] == c_names and [v for v, _ in py] == list(range(len(c_names)))
+    assert "mkc_get(" not in (FW.FIRMWARE_DIR / "include" / "mkc.h").read_text()   # firmware needs mkc.h only

@@ -1,6 +1,7 @@
 /* introspect.c: read access to a state's fields as doubles, for tests, tools and the ctypes
  * wrapper (mkc_stream/firmware.py). Not needed by firmware; no I/O. */
 #include "mkc_internal.h"
+#include "mkc_introspect.h"
 
 static int put(double *out, int cap, int k, double v)
 {

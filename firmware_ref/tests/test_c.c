@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "mkc.h"
+#include "mkc_introspect.h"
 #include "../tools/synth.h"
 
 #define RC(x) ((mkc_real)(x))

@@ -23,6 +23,7 @@
 #include <time.h>
 
 #include "mkc.h"
+#include "mkc_introspect.h"
 #include "recording.h"
 
 #define EXIT_ACCEPTED 0
