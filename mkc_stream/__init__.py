@@ -45,18 +45,6 @@ _SUBPACKAGES = ("diagnose",)
 __all__ = sorted([*_LAZY, *_SUBPACKAGES]) + ["__version__"]
 
 
-def __getattr__(name):
-    import importlib
+from ._lazy import lazy_exports  # noqa: E402
 
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-    elif name in _SUBPACKAGES:
-        value = importlib.import_module(f"{__name__}.{name}")
-    else:
-        raise AttributeError(f"module 'mkc_stream' has no attribute {name!r}")
-    globals()[name] = value          # later look-ups skip __getattr__
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, _SUBPACKAGES)

@@ -19,7 +19,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "mkc_stream"
 #: package itself)
 LAYERS = [
     # foundations: the Numba kernels and the small shared helpers they and everything else use
-    {"kernels", "_numba", "_validation", "robust", "jsonout", "units", "recording_rules", "state"},
+    {"kernels", "_numba", "_validation", "_lazy", "robust", "jsonout", "units", "recording_rules", "state"},
     # estimators, the calibration, recordings; the analytic helpers and plots
     {"batch", "stream", "verify", "baselines", "calib", "io", "pdf", "bounds", "plots"},
     # the simulator and the live sources, over recordings and the calibration
