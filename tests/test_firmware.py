@@ -119,10 +119,16 @@ def assert_exact(cmp, recs_g, recs_c, what):
 
 # ---- tables and layout ---------------------------------------------------------------------------
 
-def test_generated_tables_are_current():
-    from gen_firmware_tables import OUT, render
+def test_generated_headers_are_current():
+    from gen_firmware_tables import GENERATED
 
-    assert OUT.read_text() == render(), "firmware_ref/src/mkc_tables.h is stale: python tools/gen_firmware_tables.py"
+    for path, render in GENERATED.items():
+        assert path.read_text() == render(), f"{path.name} is stale: python tools/gen_firmware_tables.py"
+
+
+# The Python state's small arrays are named structs in the C state (mkc_fields.h).
+NAMED_STATE_ARRAYS = {"icfg": "mkc_core_cfg cfg;", "fcfg": "mkc_core_cfg cfg;", "cnt": "mkc_counters counters;",
+                      "fst": "mkc_core_fit fit;"}
 
 
 def test_state_struct_has_every_state_field():
@@ -132,7 +138,69 @@ def test_state_struct_has_every_state_field():
     core = header[header.index("typedef struct mkc_core {"):header.index("} mkc_core_t;")]
     stream = header[header.index("typedef struct mkc_stream {"):header.index("} mkc_stream_t;")]
     for name, *_ in STATE_FIELDS:
-        assert f" {name}[" in core or f" {name}[" in stream, f"state field {name} missing from the C struct"
+        if name in NAMED_STATE_ARRAYS:
+            assert NAMED_STATE_ARRAYS[name] in core, f"state array {name} missing from the C struct"
+        else:
+            assert f" {name}[" in core or f" {name}[" in stream, f"state field {name} missing from the C struct"
+
+
+def _named_fields(struct):
+    """(field, Python array, Python index constant) of a struct of mkc_fields.h, in declaration order."""
+    import re
+
+    text = (FW.FIRMWARE_DIR / "include" / "mkc_fields.h").read_text()
+    body = text[text.index(f"typedef struct {struct} {{"):text.index(f"}} {struct};")]
+    return re.findall(r"^\s+\w+ (\w+);\s+/\* (\w+)\[(\w+)\]:", body, flags=re.M)
+
+
+def test_named_fields_follow_the_python_state_table_in_order():
+    """mkc_fields.h names the entries of icfg + fcfg, cnt and fst in the order of kernels/window.py's
+    indices (the i-th field of mkc_counters is cnt[i]), one field per index, the C names as the generator's."""
+    from gen_firmware_tables import NAMED_ARRAYS
+
+    from mkc_stream.kernels import window as K
+
+    def python_order(prefix):
+        consts = {k: v for k, v in vars(K).items() if k.startswith(prefix) and isinstance(v, int)}
+        return sorted(consts, key=consts.get)
+
+    expected = {"mkc_core_cfg": [("icfg", c) for c in python_order("I_")] + [("fcfg", c) for c in python_order("F_")],
+                "mkc_counters": [("cnt", c) for c in python_order("C_")],
+                "mkc_core_fit": [("fst", c) for c in python_order("S_")]}
+    assert len(expected["mkc_core_cfg"]) == K.N_ICFG + K.N_FCFG and len(expected["mkc_counters"]) == K.N_COUNTERS
+    assert len(expected["mkc_core_fit"]) == K.N_FSTATE
+    names = {array: [field for _, field, _ in table] for array, _, table in NAMED_ARRAYS}
+    for struct, want in expected.items():
+        got = _named_fields(struct)
+        assert [(array, const) for _, array, const in got] == want, struct
+        arrays = dict.fromkeys(array for array, _ in want)
+        assert [field for field, _, _ in got] == [f for array in arrays for f in names[array]], struct
+    assert [f for f, _, _ in _named_fields("mkc_counters")][K.C_ESTEPS] == "esteps"
+    assert [f for f, _, _ in _named_fields("mkc_core_cfg")][K.I_W] == "window"
+
+
+def test_the_generator_refuses_a_table_that_drifted_from_python():
+    """A counter added (or reordered) in kernels/window.py without a C name stops the generator."""
+    import types
+
+    from gen_firmware_tables import checked_field_tables
+
+    from mkc_stream.kernels import window as K
+
+    indices = {k: v for k, v in vars(K).items() if k[:2] in ("I_", "F_", "C_", "S_") or k.startswith("N_")}
+    assert len(checked_field_tables(types.SimpleNamespace(**indices))) == 4
+    added = types.SimpleNamespace(**indices, C_NEW=K.N_COUNTERS)
+    added.N_COUNTERS = K.N_COUNTERS + 1
+    with pytest.raises(SystemExit, match="update the table"):
+        checked_field_tables(added)
+    swapped = types.SimpleNamespace(**indices)
+    swapped.C_SEEN, swapped.C_COUNT = K.C_COUNT, K.C_SEEN
+    with pytest.raises(SystemExit, match="update the table"):
+        checked_field_tables(swapped)
+    gap = types.SimpleNamespace(**indices)
+    gap.S_LAST_F = 5
+    with pytest.raises(SystemExit, match="not 0"):
+        checked_field_tables(gap)
 
 
 def test_golden_vectors_are_small():
@@ -544,4 +612,16 @@ def test_field_ids_agree_between_the_introspection_header_and_the_bridge():
     c_names = re.findall(r"MKC_F_([A-Z0-9_]+)", body)
     py = sorted(((v, k[2:]) for k, v in vars(bindings).items() if re.fullmatch(r"F_[A-Z0-9_]+", k)))
     assert [name for _, name in py] == c_names and [v for v, _ in py] == list(range(len(c_names)))
-    assert "mkc_get(" not in (FW.FIRMWARE_DIR / "include" / "mkc.h").read_text()   # firmware needs mkc.h only
+
+
+def test_the_public_header_holds_no_test_only_introspection():
+    """mkc.h (and the headers it includes) declare what firmware uses; field-by-field access and build
+    facts live in mkc_introspect.h only."""
+    import re
+
+    include = FW.FIRMWARE_DIR / "include"
+    firmware_code = re.sub(r"/\*.*?\*/", "", "".join((include / name).read_text()
+                                                    for name in ("mkc.h", "mkc_fields.h", "mkc_config.h")), flags=re.S)
+    for name in ("mkc_get(", "mkc_set(", "mkc_mag_get_info(", "mkc_build_info(", "MKC_F_THETA", "mkc_introspect.h"):
+        assert name not in firmware_code, name
+    assert "int mkc_get(" in (include / "mkc_introspect.h").read_text()

@@ -19,6 +19,7 @@
 #include <stdint.h>
 
 #include "mkc_config.h"
+#include "mkc_fields.h"
 
 #ifdef __cplusplus
 extern "C" {
@@ -48,16 +49,8 @@ enum {
 #define MKC_MAX_ABS_NORMALISED 1e60
 #endif
 
-#define MKC_COUNTERS 13      /* counters per state (cnt); indices as kernels/window.py C_* */
 #define MKC_CELLS 72         /* direction cells: 6 bands uniform in z x 12 sectors of 30 degrees */
 #define MKC_QUALITY 7        /* quality figures, order below */
-
-/* counter indices into cnt[] (kernels/window.py C_*) */
-enum {
-    MKC_CNT_HEAD = 0, MKC_CNT_COUNT, MKC_CNT_SEEN, MKC_CNT_REJECTED, MKC_CNT_ESTEPS, MKC_CNT_SINCE,
-    MKC_CNT_STATUS, MKC_CNT_SINGULAR, MKC_CNT_FP_ITERS, MKC_CNT_LAST_SLOT, MKC_CNT_RESTARTS,
-    MKC_CNT_FACTOR_AGE, MKC_CNT_FACTORS
-};
 
 /* quality figure indices (calib/quality.py quality_figures, same order as its dict) */
 enum {
@@ -76,11 +69,12 @@ typedef struct mkc_config {
     double sigma_pull;      /* weak prior on sigma, nats per e-fold (0: the paper's ML) */
 } mkc_config;
 
-/* ---- the state (mkc_stream/state.py STATE_FIELDS; X, Y in the outer struct, scratch R, ebuf last) ---- */
+/* ---- the state (mkc_stream/state.py STATE_FIELDS; X, Y in the outer struct, scratch R, ebuf last) ----
+ * The Python state's small arrays are named structs here (mkc_fields.h, generated from the same
+ * index table): icfg + fcfg = cfg, cnt = counters, fst = fit; e.g. cal.core.cfg.window,
+ * cal.core.counters.esteps, cal.core.fit.cond. Read any field; write only through the API. */
 typedef struct mkc_core {
-    int32_t icfg[8];                 /* n, m, W, K, fp_rounds, es_max_iter, min_samples, refactor */
-    mkc_real fcfg[10];               /* sig_lo, sig_hi, d_lo, d_hi, a_factor, fixed_a, es_gtol, fp_tol, sig_start,
-                                        sig_pull */
+    mkc_core_cfg cfg;                /* the settings it runs with (Python icfg, fcfg) */
     int32_t rows;                    /* where rows come from: 0 X/Y of mkc_stream_t, 1 raw of mkc_mag_t */
     mkc_real C[MKC_W][MKC_M];        /* the c = w/d^2 each row added */
     mkc_acc A[MKC_N][MKC_N];         /* weighted normal matrix (eq. 15), lower triangle */
@@ -94,14 +88,14 @@ typedef struct mkc_core {
     mkc_acc D[MKC_N];                /* its equilibration */
     mkc_acc xs[MKC_N];               /* scratch: solution */
     mkc_real tprev[MKC_N];           /* scratch: previous theta */
-    int64_t cnt[MKC_COUNTERS];       /* counters */
-    mkc_real fst[2];                 /* condition estimate, last E-step objective */
-    /* scratch last (C .. fst are what a saved estimate needs; see MKC_CORE_SAVED_BYTES) */
+    mkc_counters counters;           /* what it has done: samples, E-steps, restarts, last status (cnt) */
+    mkc_core_fit fit;                /* condition of A, last E-step objective (fst) */
+    /* scratch last (C .. fit are what a saved estimate needs; see MKC_CORE_SAVED_BYTES) */
     mkc_real R[MKC_W][MKC_M];        /* scratch: window residuals */
     mkc_real ebuf[MKC_W];            /* scratch: one channel's residuals */
 } mkc_core_t;
 
-/* Bytes of the estimate's state (C through fst): what the magnetometer's cold-start check saves. */
+/* Bytes of the estimate's state (C through fit): what the magnetometer's cold-start check saves. */
 #define MKC_CORE_SAVED_BYTES (offsetof(mkc_core_t, R) - offsetof(mkc_core_t, C))
 
 typedef struct mkc_stream {

@@ -1,7 +1,17 @@
-/* introspect.c: read access to a state's fields as doubles, for tests, tools and the ctypes
- * wrapper (mkc_stream/firmware.py). Not needed by firmware; no I/O. */
+/* introspect.c: read and write access to a state's fields as doubles, for tests, tools and the ctypes
+ * bridge (mkc_stream/cport). Not needed by firmware; no I/O. */
 #include "mkc_internal.h"
 #include "mkc_introspect.h"
+
+/* Copy n bytes (the library uses no libc beyond libm). */
+static void copy_bytes(void *to, const void *from, size_t n)
+{
+    unsigned char *t = (unsigned char *)to;
+    const unsigned char *f = (const unsigned char *)from;
+    size_t i;
+    for (i = 0; i < n; i++)
+        t[i] = f[i];
+}
 
 static int put(double *out, int cap, int k, double v)
 {
@@ -15,12 +25,13 @@ int mkc_get(const void *state, int kind, int which, double *out, int cap)
     const mkc_core_t *c = (const mkc_core_t *)state;
     const mkc_stream_t *st = kind == 0 ? (const mkc_stream_t *)state : NULL;
     const mkc_mag_t *g = kind == 1 ? (const mkc_mag_t *)state : NULL;
+    int64_t cnt[MKC_COUNTERS];   /* the counters as the Python state's cnt array (mkc_internal.h checks the layout) */
     int n, m, count, k = 0, s, i, j;
     if (!state || (kind != 0 && kind != 1))
         return -1;
-    n = c->icfg[MKC_I_N];
-    m = c->icfg[MKC_I_M];
-    count = (int)c->cnt[MKC_C_COUNT];
+    n = c->cfg.n;
+    m = c->cfg.m;
+    count = (int)c->counters.count;
     switch (which) {
     case MKC_F_THETA:
         for (j = 0; j < n; j++)
@@ -49,14 +60,15 @@ int mkc_get(const void *state, int kind, int which, double *out, int cap)
                 k = put(out, cap, k, (double)c->C[s][i]);
         break;
     case MKC_F_COND:
-        k = put(out, cap, k, (double)c->fst[MKC_S_COND]);
+        k = put(out, cap, k, (double)c->fit.cond);
         break;
     case MKC_F_LAST_F:
-        k = put(out, cap, k, (double)c->fst[MKC_S_LAST_F]);
+        k = put(out, cap, k, (double)c->fit.last_objective);
         break;
     case MKC_F_CNT:
+        copy_bytes(cnt, &c->counters, sizeof cnt);
         for (j = 0; j < MKC_COUNTERS; j++)
-            k = put(out, cap, k, (double)c->cnt[j]);
+            k = put(out, cap, k, (double)cnt[j]);
         break;
     case MKC_F_NORMAL_A:
         for (i = 0; i < n; i++)
@@ -154,12 +166,13 @@ int mkc_set(void *state, int kind, int which, const double *in, int n)
     mkc_core_t *c = (mkc_core_t *)state;
     mkc_stream_t *st = kind == 0 ? (mkc_stream_t *)state : NULL;
     mkc_mag_t *g = kind == 1 ? (mkc_mag_t *)state : NULL;
+    int64_t cnt[MKC_COUNTERS];
     int np, m, count, k = 0, s, i, j, need;
     if (!state || (kind != 0 && kind != 1) || !in)
         return MKC_BAD_INPUT;
-    np = c->icfg[MKC_I_N];
-    m = c->icfg[MKC_I_M];
-    count = (int)c->cnt[MKC_C_COUNT];
+    np = c->cfg.n;
+    m = c->cfg.m;
+    count = (int)c->counters.count;
     switch (which) {
     case MKC_F_THETA: case MKC_F_NORMAL_B: case MKC_F_DEQ: case MKC_F_XS: case MKC_F_TPREV: need = np; break;
     case MKC_F_SIGMA: case MKC_F_D: case MKC_F_A: need = m; break;
@@ -180,10 +193,11 @@ int mkc_set(void *state, int kind, int which, const double *in, int n)
     if (need < 0 || n != need || (!g && which >= MKC_F_SLOT_AGE) || (!g && (which == MKC_F_RAW || which == MKC_F_C0S0)))
         return MKC_BAD_INPUT;
     if (which == MKC_F_CNT) {
-        if (in[MKC_C_COUNT] < 0 || in[MKC_C_COUNT] > c->icfg[MKC_I_W])
+        if (in[MKC_C_COUNT] < 0 || in[MKC_C_COUNT] > c->cfg.window)
             return MKC_BAD_INPUT;
         for (j = 0; j < MKC_COUNTERS; j++)
-            c->cnt[j] = (int64_t)in[j];
+            cnt[j] = (int64_t)in[j];
+        copy_bytes(&c->counters, cnt, sizeof cnt);
         return MKC_OK;
     }
     for (k = 0; k < n; k++)
@@ -201,8 +215,8 @@ int mkc_set(void *state, int kind, int which, const double *in, int n)
     case MKC_F_A: for (i = 0; i < m; i++) c->a[i] = (mkc_real)in[k++]; break;
     case MKC_F_HES: for (i = 0; i < m; i++) for (j = 0; j < 3; j++) c->Hes[i][j] = (mkc_ereal)in[k++]; break;
     case MKC_F_C: for (s = 0; s < count; s++) for (i = 0; i < m; i++) c->C[s][i] = (mkc_real)in[k++]; break;
-    case MKC_F_COND: c->fst[MKC_S_COND] = (mkc_real)in[0]; break;
-    case MKC_F_LAST_F: c->fst[MKC_S_LAST_F] = (mkc_real)in[0]; break;
+    case MKC_F_COND: c->fit.cond = (mkc_real)in[0]; break;
+    case MKC_F_LAST_F: c->fit.last_objective = (mkc_real)in[0]; break;
     case MKC_F_NORMAL_A: for (i = 0; i < np; i++) for (j = 0; j < np; j++) c->A[i][j] = (mkc_acc)in[k++]; break;
     case MKC_F_L: for (i = 0; i < np; i++) for (j = 0; j < np; j++) c->L[i][j] = (mkc_acc)in[k++]; break;
     case MKC_F_RAW: for (s = 0; s < count; s++) for (j = 0; j < 3; j++) g->raw[s][j] = (mkc_real)in[k++]; break;

@@ -69,7 +69,7 @@ void mkc_mag_set_listener(mkc_mag_t *cal, mkc_mag_listener fn, void *user)
  * are recounted; then either restart the estimate (WLS, E-step, rebuild) or rebuild from theta. */
 static void set_normalisation(mkc_mag_t *g, const mkc_real *c0, mkc_real s0, const mkc_real *theta, int restart)
 {
-    int count = (int)g->core.cnt[MKC_C_COUNT], j;
+    int count = (int)g->core.counters.count, j;
     for (j = 0; j < 3; j++)
         g->c0[j] = c0[j];
     g->s0 = s0;
@@ -225,8 +225,8 @@ static double cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b
 
 static void checkpoint(mkc_mag_t *g)
 {
-    int64_t seen = g->core.cnt[MKC_C_SEEN], esteps = g->core.cnt[MKC_C_ESTEPS];
-    int count = (int)g->core.cnt[MKC_C_COUNT], why, j, k;
+    int64_t seen = g->core.counters.seen, esteps = g->core.counters.esteps;
+    int count = (int)g->core.counters.count, why, j, k;
     mkc__geometry geom;
     mkc_mag_reason reason;
     double bd[3], Sd[3][3], Fd;
@@ -362,39 +362,39 @@ static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
 {
     mkc_core_t *c = &g->core;
     mkc_real xk[9], yk[1] = {RC(1.0)};
-    int W = c->icfg[MKC_I_W], cell, count, slot, st, j;
+    int W = c->cfg.window, cell, count, slot, st, j;
     int64_t esteps;
     if (!finite3(mx, my, mz)) {
-        c->cnt[MKC_C_REJECTED] += 1;
+        c->counters.rejected += 1;
         return MKC_REJECTED;
     }
     mkc__ellipsoid_features(mx, my, mz, g->c0, g->s0, xk);
     /* bounded normalised coordinates keep every product of features finite (Python: any finite) */
     for (j = 6; j < 9; j++) {
         if (!(fabs(xk[j]) <= MKC_MAX_ABS_NORMALISED)) {
-            c->cnt[MKC_C_REJECTED] += 1;
+            c->counters.rejected += 1;
             return MKC_REJECTED;
         }
     }
     cell = mkc__direction_cell(mx - g->c0[0], my - g->c0[1], mz - g->c0[2]);
-    count = (int)c->cnt[MKC_C_COUNT];
+    count = (int)c->counters.count;
     if (g->policy == MKC_POLICY_FIFO) {
-        slot = (int)c->cnt[MKC_C_HEAD];
-        c->cnt[MKC_C_HEAD] = (slot + 1) % W;
+        slot = (int)c->counters.head;
+        c->counters.head = (slot + 1) % W;
     } else {
         slot = mkc__choose_slot(g, cell, count, W);
     }
     if (slot < count)
         g->cell_count[g->slot_cell[slot]] -= 1;
-    esteps = c->cnt[MKC_C_ESTEPS];
+    esteps = c->counters.esteps;
     g->in_raw[0] = mx;
     g->in_raw[1] = my;
     g->in_raw[2] = mz;
     st = mkc__learn_one(c, xk, yk, slot);
     g->slot_cell[slot] = (uint8_t)cell;
-    g->slot_age[slot] = (uint32_t)c->cnt[MKC_C_SEEN];
+    g->slot_age[slot] = (uint32_t)c->counters.seen;
     g->cell_count[cell] += 1;
-    if (c->cnt[MKC_C_ESTEPS] > esteps && c->cnt[MKC_C_STATUS] != MKC_WARMING_UP && c->cnt[MKC_C_SINCE] == 0)
+    if (c->counters.esteps > esteps && c->counters.status != MKC_WARMING_UP && c->counters.since == 0)
         checkpoint(g);
     return st;
 }
@@ -426,7 +426,7 @@ int mkc_mag_push(mkc_mag_t *cal, mkc_real mx, mkc_real my, mkc_real mz)
     /* gather init_samples finite samples for the first normalisation; raw[] holds them (each
      * goes back to its own slot: the window is empty, so slot k = sample k) */
     if (!finite3(mx, my, mz)) {
-        cal->core.cnt[MKC_C_REJECTED] += 1;
+        cal->core.counters.rejected += 1;
         return MKC_REJECTED;
     }
     cal->raw[cal->pending][0] = mx;
@@ -482,10 +482,10 @@ void mkc_mag_status_reason(const mkc_mag_t *cal, mkc_mag_reason *out)
         out->code = MKC_REASON_PENDING;
         out->v[0] = cal->pending;
         out->v[1] = cal->init_samples;
-    } else if (cal->core.cnt[MKC_C_STATUS] == MKC_WARMING_UP) {
+    } else if (cal->core.counters.status == MKC_WARMING_UP) {
         out->code = MKC_REASON_WINDOW;
-        out->v[0] = (double)cal->core.cnt[MKC_C_COUNT];
-        out->v[1] = cal->core.icfg[MKC_I_MIN_SAMPLES];
+        out->v[0] = (double)cal->core.counters.count;
+        out->v[1] = cal->core.cfg.min_samples;
     } else {
         *out = cal->last_reason;
     }
@@ -493,6 +493,6 @@ void mkc_mag_status_reason(const mkc_mag_t *cal, mkc_mag_reason *out)
 
 void mkc_mag_counts(const mkc_mag_t *cal, int64_t *samples, int64_t *bad_frames)
 {
-    *samples = cal->core.cnt[MKC_C_SEEN] + cal->core.cnt[MKC_C_REJECTED] + cal->pending;
-    *bad_frames = cal->core.cnt[MKC_C_REJECTED];
+    *samples = cal->core.counters.seen + cal->core.counters.rejected + cal->pending;
+    *bad_frames = cal->core.counters.rejected;
 }

@@ -30,7 +30,7 @@ int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
 int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W)
 {
     int c, s, fullest = 0, target, best = -1;
-    uint32_t now = (uint32_t)g->core.cnt[MKC_C_SEEN], best_age = 0;
+    uint32_t now = (uint32_t)g->core.counters.seen, best_age = 0;
     if (count < W)
         return count;
     for (c = 0; c < MKC_N_CELLS; c++)

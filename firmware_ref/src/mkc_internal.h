@@ -25,6 +25,13 @@ typedef char mkc__check_status[(MKC_OK == MKC_T_OK && MKC_NOT_CONVERGED == MKC_T
                                 MKC_REJECTED == MKC_T_REJECTED) ? 1 : -1];
 typedef char mkc__check_counters[(MKC_COUNTERS == MKC_N_COUNTERS && MKC_CNT_FACTORS == MKC_C_FACTORS &&
                                   MKC_CNT_STATUS == MKC_C_STATUS && MKC_CELLS == MKC_N_CELLS) ? 1 : -1];
+/* The named fields (mkc_fields.h) hold the Python arrays' entries back to back, no padding: the
+ * state's layout is that of the arrays, and introspect.c copies the counters as an int64_t array. */
+typedef char mkc__check_named_fields[
+    (sizeof(mkc_core_cfg) == MKC_N_ICFG * sizeof(int32_t) + MKC_N_FCFG * sizeof(mkc_real) &&
+     sizeof(mkc_counters) == MKC_N_COUNTERS * sizeof(int64_t) &&
+     sizeof(mkc_core_fit) == MKC_N_FSTATE * sizeof(mkc_real))
+    ? 1 : -1];
 
 #define MKC_PI 3.141592653589793238462643383279502884
 

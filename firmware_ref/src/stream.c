@@ -35,24 +35,24 @@ int mkc_stream_init(mkc_stream_t *st, const mkc_config *cfg, const mkc_real *sig
         p[k] = 0;
     r = mkc__core_init(&st->core, cfg, sigma0, d0, theta0, 0);
     if (r != MKC_OK)
-        st->core.icfg[MKC_I_N] = 0;       /* unusable: learn_one answers MKC_BAD_INPUT */
+        st->core.cfg.n = 0;       /* unusable: learn_one answers MKC_BAD_INPUT */
     return r;
 }
 
 int mkc_stream_learn_one(mkc_stream_t *st, const mkc_real *x, const mkc_real *y, int slot)
 {
     mkc_core_t *c = &st->core;
-    int n = c->icfg[MKC_I_N], m = c->icfg[MKC_I_M], i, j;
-    if (n < 1 || slot >= c->icfg[MKC_I_W] || (slot >= 0 && slot > c->cnt[MKC_C_COUNT]))
+    int n = c->cfg.n, m = c->cfg.m, i, j;
+    if (n < 1 || slot >= c->cfg.window || (slot >= 0 && slot > c->counters.count))
         return MKC_BAD_INPUT;
     for (i = 0; i < m; i++) {
         if (!(fabs(y[i]) <= MKC_MAX_ABS_INPUT)) {      /* NaN, inf or huge */
-            c->cnt[MKC_C_REJECTED] += 1;
+            c->counters.rejected += 1;
             return MKC_REJECTED;
         }
         for (j = 0; j < n; j++) {
             if (!(fabs(x[i * n + j]) <= MKC_MAX_ABS_INPUT)) {
-                c->cnt[MKC_C_REJECTED] += 1;
+                c->counters.rejected += 1;
                 return MKC_REJECTED;
             }
         }
@@ -62,7 +62,7 @@ int mkc_stream_learn_one(mkc_stream_t *st, const mkc_real *x, const mkc_real *y,
 
 int mkc_stream_learn_many(mkc_stream_t *st, const mkc_real *X, const mkc_real *Y, long T, int8_t *status_out)
 {
-    int n = st->core.icfg[MKC_I_N], m = st->core.icfg[MKC_I_M], s = MKC_WARMING_UP;
+    int n = st->core.cfg.n, m = st->core.cfg.m, s = MKC_WARMING_UP;
     long t;
     for (t = 0; t < T; t++) {
         s = mkc_stream_learn_one(st, X + (size_t)t * (size_t)(m * n), Y + (size_t)t * (size_t)m, -1);
@@ -74,7 +74,7 @@ int mkc_stream_learn_many(mkc_stream_t *st, const mkc_real *X, const mkc_real *Y
 
 void mkc_stream_predict(const mkc_stream_t *st, const mkc_real *x, mkc_real *out)
 {
-    int n = st->core.icfg[MKC_I_N], m = st->core.icfg[MKC_I_M], i, j;
+    int n = st->core.cfg.n, m = st->core.cfg.m, i, j;
     for (i = 0; i < m; i++) {
         mkc_real s = RC(0.0);
         for (j = 0; j < n; j++)

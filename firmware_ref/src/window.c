@@ -14,9 +14,6 @@
  */
 #include "mkc_internal.h"
 
-#define ICFG(c, i) ((c)->icfg[(i)])
-#define FCFG(c, i) ((c)->fcfg[(i)])
-
 /* x_k of eq. (36)-(37) for the normalised sample (m - c0) / s0 (kernels/magwindow.py). */
 void mkc__ellipsoid_features(mkc_real mx, mkc_real my, mkc_real mz, const mkc_real *c0, mkc_real s0, mkc_real *xk)
 {
@@ -61,7 +58,7 @@ static mkc_real target(const mkc_core_t *c, int s, int i)
 /* Write the new sample into slot s (before anything reads that slot's row). */
 static void store_row(mkc_core_t *c, int s, const mkc_real *xk, const mkc_real *yk)
 {
-    int i, j, n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
+    int i, j, n = c->cfg.n, m = c->cfg.m;
     if (c->rows) {
         mkc_mag_t *g = (mkc_mag_t *)(void *)c;
         g->raw[s][0] = g->in_raw[0];
@@ -183,18 +180,18 @@ static void row_update2(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x0,
  * the factor the tracking steps use (age 0), or are marked invalid. */
 static int solve_window(mkc_core_t *c, mkc_acc *cond)
 {
-    int p, q, j, st, n = ICFG(c, MKC_I_N);
+    int p, q, j, st, n = c->cfg.n;
     for (p = 0; p < n; p++)
         for (q = p + 1; q < n; q++)
             c->A[p][q] = c->A[q][p];
     st = mkc__spd_solve((const mkc_acc(*)[MKC_N])c->A, c->b, c->xs, c->L, c->D, n, cond);
-    c->cnt[MKC_C_FACTORS] += 1;
+    c->counters.factors += 1;
     if (st == MKC_OK) {
         for (j = 0; j < n; j++)
             c->theta[j] = (mkc_real)c->xs[j];
-        c->cnt[MKC_C_FACTOR_AGE] = 0;
+        c->counters.factor_age = 0;
     } else {
-        c->cnt[MKC_C_FACTOR_AGE] = -1;
+        c->counters.factor_age = -1;
     }
     return st;
 }
@@ -204,7 +201,7 @@ static int solve_window(mkc_core_t *c, mkc_acc *cond)
  * REFINE_MAX_STEP |theta|: the factor is too stale, the caller refactors. */
 static int refine_theta(mkc_core_t *c)
 {
-    int p, q, k, i, j, n = ICFG(c, MKC_I_N);
+    int p, q, k, i, j, n = c->cfg.n;
     mkc_acc step = AC(0.0), size = AC(0.0), s[MKC_N], th[MKC_N];
     /* r = D (b - A theta). Each s[p] subtracts A[p][q] theta[q] in ascending q (A[p][q] below the
      * diagonal, A[q][p] above), as the reference's row loop. Two rows per pass, their sums in
@@ -268,15 +265,15 @@ static int refine_theta(mkc_core_t *c)
  * E-step computed them with the same loop), so the first round skips that pass. */
 static int rebuild_with(mkc_core_t *c, int have_r)
 {
-    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
-    int count = (int)c->cnt[MKC_C_COUNT];
+    int n = c->cfg.n, m = c->cfg.m;
+    int count = (int)c->counters.count;
     int status = MKC_NOT_CONVERGED, rnd, p, q, s, i, j, st, k;
     /* up to four pending rows (c != 0) are added to A, b in one pass (row_update4); buf holds the
      * recomputed features of a magnetometer window, one buffer per pending row */
     mkc_real buf[4][MKC_N], py[4];
     const mkc_real *px[4];
     mkc_acc pc[4];
-    for (rnd = 0; rnd < ICFG(c, MKC_I_FP_ROUNDS); rnd++) {
+    for (rnd = 0; rnd < c->cfg.fp_rounds; rnd++) {
         mkc_acc wsum = AC(0.0), cond, num = AC(0.0), den = AC(0.0);
         for (p = 0; p < n; p++) {
             c->b[p] = AC(0.0);
@@ -316,15 +313,15 @@ static int rebuild_with(mkc_core_t *c, int have_r)
             row_update(c->A, c->b, px[j], py[j], pc[j], n);
         if (wsum < (mkc_acc)n) {
             /* fewer effective equations than unknowns: the kernel lost the data (a bad theta) */
-            c->cnt[MKC_C_SINGULAR] += 1;
-            c->cnt[MKC_C_FACTOR_AGE] = -1;          /* L, D belong to an A that no longer exists */
+            c->counters.singular += 1;
+            c->counters.factor_age = -1;          /* L, D belong to an A that no longer exists */
             return MKC_SINGULAR;
         }
         st = solve_window(c, &cond);
-        c->fst[MKC_S_COND] = (mkc_real)cond;
-        c->cnt[MKC_C_FP_ITERS] += 1;
+        c->fit.cond = (mkc_real)cond;
+        c->counters.fp_iters += 1;
         if (st != MKC_OK) {
-            c->cnt[MKC_C_SINGULAR] += 1;
+            c->counters.singular += 1;
             return st;
         }
         for (j = 0; j < n; j++) {
@@ -333,7 +330,7 @@ static int rebuild_with(mkc_core_t *c, int have_r)
             num += dj * dj;
             den += tj * tj;
         }
-        if (sqrt(num) <= (mkc_acc)FCFG(c, MKC_F_FP_TOL) * mkc__max_a(sqrt(den), AC(MKC_TINY_ACC))) {
+        if (sqrt(num) <= (mkc_acc)c->cfg.fp_tol * mkc__max_a(sqrt(den), AC(MKC_TINY_ACC))) {
             status = MKC_OK;
             break;
         }
@@ -349,8 +346,8 @@ int mkc__rebuild(mkc_core_t *c)
 /* Algorithm 2 per channel on the window's residuals at the current theta, warm-started. */
 void mkc__estep_window(mkc_core_t *c)
 {
-    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
-    int count = (int)c->cnt[MKC_C_COUNT];
+    int n = c->cfg.n, m = c->cfg.m;
+    int count = (int)c->counters.count;
     int s, i, j;
     mkc_ereal Fsum = EC(0.0);
     mkc_real buf[MKC_N], buf2[MKC_N], th[MKC_N];
@@ -390,8 +387,8 @@ void mkc__estep_window(mkc_core_t *c)
             amax = mkc__max_r(amax, fabs(c->R[s][i]));
             ymax = mkc__max_r(ymax, fabs(target(c, s, i)));
         }
-        ai = FCFG(c, MKC_F_FIXED_A) > RC(0.0) ? FCFG(c, MKC_F_FIXED_A)
-                                              : mkc__max_r(FCFG(c, MKC_F_AFAC) * amax, RC(1e-12) * (RC(1.0) + ymax));
+        ai = c->cfg.a > RC(0.0) ? c->cfg.a
+                                              : mkc__max_r(c->cfg.a_factor * amax, RC(1e-12) * (RC(1.0) + ymax));
         if (!(RC(0.5) * c->a[i] <= ai && ai <= RC(2.0) * c->a[i])) {
             /* The truncation bound moved by more than 2x (a burst entered or left the window): the
              * curvature learnt in the old regime would throw the first step to the box edge.
@@ -406,10 +403,10 @@ void mkc__estep_window(mkc_core_t *c)
         }
         c->a[i] = ai;
         st = mkc__estep_channel(c->ebuf, count, (mkc_ereal)ai, (mkc_ereal)c->sigma[i], (mkc_ereal)c->d[i],
-                                (mkc_ereal)FCFG(c, MKC_F_SIG_LO), (mkc_ereal)FCFG(c, MKC_F_SIG_HI),
-                                (mkc_ereal)(FCFG(c, MKC_F_DLO) * ai), (mkc_ereal)(FCFG(c, MKC_F_DHI) * ai),
-                                ICFG(c, MKC_I_ES_MAX_ITER), (mkc_ereal)FCFG(c, MKC_F_ES_GTOL),
-                                (mkc_ereal)FCFG(c, MKC_F_SIG_PULL), c->Hes[i], &s_new,
+                                (mkc_ereal)c->cfg.sigma_lo, (mkc_ereal)c->cfg.sigma_hi,
+                                (mkc_ereal)(c->cfg.d_lo * ai), (mkc_ereal)(c->cfg.d_hi * ai),
+                                c->cfg.estep_max_iter, (mkc_ereal)c->cfg.estep_gtol,
+                                (mkc_ereal)c->cfg.sigma_pull, c->Hes[i], &s_new,
                                 &d_new, &F, &its);
         if (st == MKC_OK || st == MKC_NOT_CONVERGED) {
             c->sigma[i] = (mkc_real)s_new;
@@ -417,15 +414,15 @@ void mkc__estep_window(mkc_core_t *c)
             Fsum += F;
         }
     }
-    c->fst[MKC_S_LAST_F] = (mkc_real)Fsum;
-    c->cnt[MKC_C_ESTEPS] += 1;
+    c->fit.last_objective = (mkc_real)Fsum;
+    c->counters.esteps += 1;
 }
 
 /* First solve once min_samples are in: WLS (sigma = inf) on the window, then Algorithm 1. */
 static int initialise_window(mkc_core_t *c)
 {
-    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
-    int count = (int)c->cnt[MKC_C_COUNT];
+    int n = c->cfg.n, m = c->cfg.m;
+    int count = (int)c->counters.count;
     int p, q, s, i, j, st;
     mkc_acc cond;
     mkc_real buf[MKC_N];
@@ -441,9 +438,9 @@ static int initialise_window(mkc_core_t *c)
         }
     }
     st = solve_window(c, &cond);
-    c->fst[MKC_S_COND] = (mkc_real)cond;
+    c->fit.cond = (mkc_real)cond;
     if (st != MKC_OK) {
-        c->cnt[MKC_C_SINGULAR] += 1;
+        c->counters.singular += 1;
         return st;
     }
     /* d unset (<= 0): start from the RMS of the WLS residuals; the first E-step refines it */
@@ -467,9 +464,9 @@ static int initialise_window(mkc_core_t *c)
 int mkc__restart(mkc_core_t *c)
 {
     int i;
-    c->cnt[MKC_C_RESTARTS] += 1;
-    for (i = 0; i < ICFG(c, MKC_I_M); i++) {
-        c->sigma[i] = FCFG(c, MKC_F_SIG_START);
+    c->counters.restarts += 1;
+    for (i = 0; i < c->cfg.m; i++) {
+        c->sigma[i] = c->cfg.sigma_start;
         c->d[i] = RC(-1.0);
         c->Hes[i][0] = EC(0.0);
         c->Hes[i][1] = EC(0.0);
@@ -483,11 +480,11 @@ int mkc__restart(mkc_core_t *c)
  * so the first M-step keeps the start's robustness. Scratch: c->ebuf. */
 int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
 {
-    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M);
-    int count = (int)c->cnt[MKC_C_COUNT];
+    int n = c->cfg.n, m = c->cfg.m;
+    int count = (int)c->counters.count;
     int i, j, s;
     mkc_real buf[MKC_N];
-    c->cnt[MKC_C_RESTARTS] += 1;
+    c->counters.restarts += 1;
     for (j = 0; j < n; j++)
         c->theta[j] = theta0[j];
     for (i = 0; i < m; i++) {
@@ -546,17 +543,17 @@ int mkc__cold_start(mkc_core_t *c, int rounds)
  * caller has checked the sample (finite, bounded). */
 int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int slot)
 {
-    int n = ICFG(c, MKC_I_N), m = ICFG(c, MKC_I_M), W = ICFG(c, MKC_I_W);
+    int n = c->cfg.n, m = c->cfg.m, W = c->cfg.window;
     int i, j, ready, st, pend = 0;
     mkc_acc cond;
     mkc_real buf[MKC_N], old_x[MKC_N], oy = RC(0.0);
     mkc_acc oc = AC(0.0);
     if (slot < 0) {
-        slot = (int)c->cnt[MKC_C_HEAD];
-        c->cnt[MKC_C_HEAD] = (slot + 1) % W;
+        slot = (int)c->counters.head;
+        c->counters.head = (slot + 1) % W;
     }
-    c->cnt[MKC_C_LAST_SLOT] = slot;
-    if (slot < c->cnt[MKC_C_COUNT]) {
+    c->counters.last_slot = slot;
+    if (slot < c->counters.count) {
         /* replace: subtract exactly what this slot added. One channel (m = 1): keep the old row
          * (store_row overwrites it) and subtract it in the same pass over A, b as the new row's
          * addition below (row_update2: each element still receives "- old, + new" in that order). */
@@ -574,9 +571,9 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
                                n);
         }
     } else {
-        c->cnt[MKC_C_COUNT] += 1;
+        c->counters.count += 1;
     }
-    ready = c->cnt[MKC_C_ESTEPS] > 0 || c->cnt[MKC_C_FP_ITERS] > 0;
+    ready = c->counters.esteps > 0 || c->counters.fp_iters > 0;
     store_row(c, slot, xk, yk);
     for (i = 0; i < m; i++) {
         mkc_real r = yk[i], cc;
@@ -596,22 +593,22 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
     }
     if (pend)
         row_update(c->A, c->b, old_x, oy, oc, n);
-    c->cnt[MKC_C_SEEN] += 1;
-    c->cnt[MKC_C_SINCE] += 1;
-    if (c->cnt[MKC_C_COUNT] < ICFG(c, MKC_I_MIN_SAMPLES)) {
-        c->cnt[MKC_C_STATUS] = MKC_WARMING_UP;
+    c->counters.seen += 1;
+    c->counters.since += 1;
+    if (c->counters.count < c->cfg.min_samples) {
+        c->counters.status = MKC_WARMING_UP;
         return MKC_WARMING_UP;
     }
     if (!ready) {
         st = initialise_window(c);
         if (st != MKC_OK && st != MKC_NOT_CONVERGED) {
-            c->cnt[MKC_C_STATUS] = st;
+            c->counters.status = st;
             return st;
         }
-        c->cnt[MKC_C_SINCE] = ICFG(c, MKC_I_K);        /* run the first E-step now */
+        c->counters.since = c->cfg.estep_every;        /* run the first E-step now */
     }
-    if (c->cnt[MKC_C_SINCE] >= ICFG(c, MKC_I_K)) {
-        c->cnt[MKC_C_SINCE] = 0;
+    if (c->counters.since >= c->cfg.estep_every) {
+        c->counters.since = 0;
         mkc__estep_window(c);
         st = rebuild_with(c, 1);
         if (st != MKC_OK && st != MKC_NOT_CONVERGED) {
@@ -620,18 +617,18 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
             st = mkc__restart(c);
         }
     } else {
-        int64_t age = c->cnt[MKC_C_FACTOR_AGE];
+        int64_t age = c->counters.factor_age;
         st = MKC_OK;
-        if (age >= 0 && age < ICFG(c, MKC_I_REFACTOR) && refine_theta(c)) {
-            c->cnt[MKC_C_FACTOR_AGE] = age + 1;
+        if (age >= 0 && age < c->cfg.refactor_every && refine_theta(c)) {
+            c->counters.factor_age = age + 1;
         } else {
             st = solve_window(c, &cond);
-            c->fst[MKC_S_COND] = (mkc_real)cond;
+            c->fit.cond = (mkc_real)cond;
             if (st != MKC_OK)
-                c->cnt[MKC_C_SINGULAR] += 1;
+                c->counters.singular += 1;
         }
     }
-    c->cnt[MKC_C_STATUS] = st;
+    c->counters.status = st;
     return st;
 }
 
@@ -676,24 +673,24 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
         int w8 = W / 8 > 1 ? W / 8 : 1;
         refactor = K < w8 ? K : w8;
     }
-    c->icfg[MKC_I_N] = n;
-    c->icfg[MKC_I_M] = m;
-    c->icfg[MKC_I_W] = W;
-    c->icfg[MKC_I_K] = K;
-    c->icfg[MKC_I_FP_ROUNDS] = cfg->fp_rounds;
-    c->icfg[MKC_I_ES_MAX_ITER] = cfg->estep_max_iter;
-    c->icfg[MKC_I_MIN_SAMPLES] = need;
-    c->icfg[MKC_I_REFACTOR] = refactor;
-    c->fcfg[MKC_F_SIG_LO] = (mkc_real)cfg->sigma_lo;
-    c->fcfg[MKC_F_SIG_HI] = (mkc_real)cfg->sigma_hi;
-    c->fcfg[MKC_F_DLO] = (mkc_real)cfg->d_lo;
-    c->fcfg[MKC_F_DHI] = (mkc_real)cfg->d_hi;
-    c->fcfg[MKC_F_AFAC] = (mkc_real)cfg->a_factor;
-    c->fcfg[MKC_F_FIXED_A] = (mkc_real)cfg->a;
-    c->fcfg[MKC_F_ES_GTOL] = (mkc_real)cfg->estep_gtol;
-    c->fcfg[MKC_F_FP_TOL] = (mkc_real)cfg->fp_tol;
-    c->fcfg[MKC_F_SIG_START] = (mkc_real)cfg->sigma_start;
-    c->fcfg[MKC_F_SIG_PULL] = (mkc_real)cfg->sigma_pull;
+    c->cfg.n = n;
+    c->cfg.m = m;
+    c->cfg.window = W;
+    c->cfg.estep_every = K;
+    c->cfg.fp_rounds = cfg->fp_rounds;
+    c->cfg.estep_max_iter = cfg->estep_max_iter;
+    c->cfg.min_samples = need;
+    c->cfg.refactor_every = refactor;
+    c->cfg.sigma_lo = (mkc_real)cfg->sigma_lo;
+    c->cfg.sigma_hi = (mkc_real)cfg->sigma_hi;
+    c->cfg.d_lo = (mkc_real)cfg->d_lo;
+    c->cfg.d_hi = (mkc_real)cfg->d_hi;
+    c->cfg.a_factor = (mkc_real)cfg->a_factor;
+    c->cfg.a = (mkc_real)cfg->a;
+    c->cfg.estep_gtol = (mkc_real)cfg->estep_gtol;
+    c->cfg.fp_tol = (mkc_real)cfg->fp_tol;
+    c->cfg.sigma_start = (mkc_real)cfg->sigma_start;
+    c->cfg.sigma_pull = (mkc_real)cfg->sigma_pull;
     c->rows = rows;
     for (i = 0; i < m; i++) {
         c->sigma[i] = sigma0 ? sigma0[i] : RC(MKC_DEF_SIGMA0);
@@ -702,7 +699,7 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
     if (theta0)
         for (i = 0; i < n; i++)
             c->theta[i] = theta0[i];
-    c->cnt[MKC_C_STATUS] = MKC_WARMING_UP;
-    c->fst[MKC_S_COND] = RC(HUGE_VAL);
+    c->counters.status = MKC_WARMING_UP;
+    c->fit.cond = RC(HUGE_VAL);
     return MKC_OK;
 }

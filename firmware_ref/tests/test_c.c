@@ -2,6 +2,7 @@
  * under valgrind). The cross-check against the Python reference is tests/test_firmware.py.
  *
  *   - a synthetic stream is calibrated and the accepted calibration is close to the truth
+ *   - the named settings, counters and fit figures (mkc_fields.h) are the entries mkc_get reports
  *   - bad input (NaN, inf, huge values, a stream that never moves, a rotation about one axis, all-
  *     zero regressors, bad configurations) gives status codes, never a crash or a NaN in the state
  */
@@ -113,6 +114,50 @@ static void test_synthetic_calibration(void)
     }
     CHECK(worst < 0.01, "calibrated norms within 1%% of F (worst %g)", worst);
     CHECK(state_finite(&cal, 1), "state finite after a good stream");
+}
+
+/* After test_synthetic_calibration: each named field is the entry of the Python-ordered array that
+ * mkc_get reports for it, and the settings are the configuration's, resolved. */
+static void test_named_fields(void)
+{
+    double cnt[MKC_COUNTERS + 1], cond;
+    int64_t samples, bad;
+    mkc_mag_config cfg;
+    mkc_mag_config_default(&cfg);
+    CHECK(mkc_get(&cal, 1, MKC_F_CNT, cnt, MKC_COUNTERS + 1) == MKC_COUNTERS, "mkc_get(MKC_F_CNT) size");
+    CHECK(cnt[MKC_CNT_HEAD] == (double)cal.core.counters.head &&
+          cnt[MKC_CNT_COUNT] == (double)cal.core.counters.count &&
+          cnt[MKC_CNT_SEEN] == (double)cal.core.counters.seen &&
+          cnt[MKC_CNT_REJECTED] == (double)cal.core.counters.rejected &&
+          cnt[MKC_CNT_ESTEPS] == (double)cal.core.counters.esteps &&
+          cnt[MKC_CNT_SINCE] == (double)cal.core.counters.since &&
+          cnt[MKC_CNT_STATUS] == (double)cal.core.counters.status &&
+          cnt[MKC_CNT_SINGULAR] == (double)cal.core.counters.singular &&
+          cnt[MKC_CNT_FP_ITERS] == (double)cal.core.counters.fp_iters &&
+          cnt[MKC_CNT_LAST_SLOT] == (double)cal.core.counters.last_slot &&
+          cnt[MKC_CNT_RESTARTS] == (double)cal.core.counters.restarts &&
+          cnt[MKC_CNT_FACTOR_AGE] == (double)cal.core.counters.factor_age &&
+          cnt[MKC_CNT_FACTORS] == (double)cal.core.counters.factors, "named counters are mkc_get's entries");
+    CHECK(cal.core.counters.count == 256 && cal.core.counters.esteps > 100 && cal.core.counters.fp_iters > 0,
+          "counters after a 12000-sample stream: count %lld, esteps %lld", (long long)cal.core.counters.count,
+          (long long)cal.core.counters.esteps);
+    mkc_mag_counts(&cal, &samples, &bad);
+    CHECK(bad == cal.core.counters.rejected && samples == cal.core.counters.seen + bad + cal.pending,
+          "mkc_mag_counts from the named counters");
+    CHECK(mkc_get(&cal, 1, MKC_F_COND, &cond, 1) == 1 && cond == (double)cal.core.fit.cond && cond >= 1.0,
+          "fit.cond is mkc_get(MKC_F_COND): %g", cond);
+    CHECK(cal.core.cfg.n == 9 && cal.core.cfg.m == 1 && cal.core.cfg.window == 256 &&
+          cal.core.cfg.estep_every == cfg.stream.estep_every && cal.core.cfg.fp_rounds == cfg.stream.fp_rounds &&
+          cal.core.cfg.estep_max_iter == cfg.stream.estep_max_iter && cal.core.cfg.min_samples > 0 &&
+          cal.core.cfg.refactor_every > 0, "integer settings");
+    CHECK(cal.core.cfg.sigma_lo == (mkc_real)cfg.stream.sigma_lo &&
+          cal.core.cfg.sigma_hi == (mkc_real)cfg.stream.sigma_hi &&
+          cal.core.cfg.d_lo == (mkc_real)cfg.stream.d_lo && cal.core.cfg.d_hi == (mkc_real)cfg.stream.d_hi &&
+          cal.core.cfg.a_factor == (mkc_real)cfg.stream.a_factor && cal.core.cfg.a == (mkc_real)cfg.stream.a &&
+          cal.core.cfg.estep_gtol == (mkc_real)cfg.stream.estep_gtol &&
+          cal.core.cfg.fp_tol == (mkc_real)cfg.stream.fp_tol &&
+          cal.core.cfg.sigma_start == (mkc_real)cfg.stream.sigma_start &&
+          cal.core.cfg.sigma_pull == (mkc_real)cfg.stream.sigma_pull, "real settings");
 }
 
 static void test_bad_samples(void)
@@ -266,6 +311,7 @@ static void test_configuration(void)
 int main(void)
 {
     test_synthetic_calibration();
+    test_named_fields();
     test_bad_samples();
     test_degenerate_streams();
     test_generic_stream();

@@ -112,9 +112,9 @@ int main(int argc, char **argv)
            sizeof(mkc_real) == 8 ? "double" : "float", (int)sizeof(mkc_real), (int)sizeof(mkc_acc),
            (int)sizeof(mkc_ereal), W, K);
     printf("  stream learn_many : %12.0f samples/s  (%.3f us/sample; restarts %lld, singular %lld, Cholesky/sample %.3f)\n",
-           (double)(T - warm) / best, 1e6 * best / (double)(T - warm), (long long)st.core.cnt[MKC_CNT_RESTARTS],
-           (long long)st.core.cnt[MKC_CNT_SINGULAR],
-           (double)st.core.cnt[MKC_CNT_FACTORS] / (double)st.core.cnt[MKC_CNT_SEEN]);
+           (double)(T - warm) / best, 1e6 * best / (double)(T - warm), (long long)st.core.counters.restarts,
+           (long long)st.core.counters.singular,
+           (double)st.core.counters.factors / (double)st.core.counters.seen);
     printf("  E-step + rebuild  : %12.2f us (full window, alone)\n", 1e6 * es);
     printf("  mag push_many     : %12.0f samples/s  (%.3f us/sample; checkpoints %lld, accepted: %s)\n",
            (double)(Tm - 4L * W) / bestm, 1e6 * bestm / (double)(Tm - 4L * W), (long long)cal.checkpoints,

@@ -359,8 +359,8 @@ static void on_checkpoint(void *user, const mkc_mag_t *cal)
             sb_put(b, ",\n    ", 6);
         /* esteps: E-steps done by the end of the checkpoint (a restart or cold start adds some) */
         sb_printf(b, "{\"samples\": %lld, \"esteps\": %lld, \"status\": %d, \"accepted\": %s, \"reason\": ",
-                  (long long)ev->samples_seen, (long long)cal->core.cnt[MKC_CNT_ESTEPS],
-                  (int)cal->core.cnt[MKC_CNT_STATUS], ev->accepted ? "true" : "false");
+                  (long long)ev->samples_seen, (long long)cal->core.counters.esteps,
+                  (int)cal->core.counters.status, ev->accepted ? "true" : "false");
         json_str(b, reason.s ? reason.s : "");
         n = mkc_get(cal, 1, MKC_F_THETA, v, 12);
         sb_printf(b, ", \"theta\": ");
@@ -598,7 +598,7 @@ static int run_linear(const char *path, int n, int m, int window, int K, double 
     }
     while (fgets(line, sizeof(line), f)) {
         char *p = line, *e;
-        int64_t e0 = st.core.cnt[MKC_CNT_ESTEPS];
+        int64_t e0 = st.core.counters.esteps;
         for (i = 0; i < m * n + m; i++) {
             double val = strtod(p, &e);
             if (e == p)
@@ -614,7 +614,7 @@ static int run_linear(const char *path, int n, int m, int window, int K, double 
                 p++;
         }
         r = mkc_stream_learn_one(&st, x, y, -1);
-        if (st.core.cnt[MKC_CNT_ESTEPS] > e0) {
+        if (st.core.counters.esteps > e0) {
             int nn;
             printf("%s\n  {\"index\": %ld, \"status\": %d, \"theta\": [", first ? "" : ",", k, r);
             nn = mkc_get(&st, 0, MKC_F_THETA, v, MKC_N + MKC_M);
