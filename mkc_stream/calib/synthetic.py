@@ -3,6 +3,12 @@
 Used by tests and the accuracy studies in tools/. A recording is raw = S^-1 (F u) + b + noise
 (+ burst offsets), with u(t) a smooth path over the sphere (a hand-held figure sweep), so the
 true calibration (b, S, F) of the spec's convention is known exactly.
+
+The simulator's ``sweep`` preset (:func:`mkc_stream.sim.presets.sweep`) makes the same stream
+through :func:`mkc_stream.sim.simulate`, sample for sample, and can add library effects to it;
+the path, platform, burst and spike generators here are the ones it uses. ``synthetic_mag``
+stays here, written out, because the calibration layer's tests and studies need it and the
+simulator sits above this layer (tests/test_effect_registry.py checks the two agree).
 """
 from __future__ import annotations
 
@@ -30,6 +36,21 @@ def random_soft_iron(rng, spread=0.25):
     Q = Rotation.random(random_state=rng).as_matrix()
     S = (Q * lam) @ Q.T
     return 0.5 * (S + S.T)
+
+
+def random_platform(rng, hard_iron_scale=30.0, soft_spread=0.25):
+    """(b, S): hard iron uniform in +-hard_iron_scale per axis (uT), then a random soft iron."""
+    b = rng.uniform(-hard_iron_scale, hard_iron_scale, 3)
+    return b, random_soft_iron(rng, soft_spread)
+
+
+def spike_offsets(seed, N, fraction, magnitude):
+    """(hit (N,) bool, offsets (hits, 3)): each sample is a spike with probability ``fraction`` and
+    gets N(0, magnitude^2) per axis, drawn from their own generator (seeded [seed, 1]) so a stream
+    without spikes draws nothing extra."""
+    srng = np.random.default_rng([seed, 1])
+    hit = srng.random(N) < fraction
+    return hit, srng.normal(0.0, magnitude, (int(hit.sum()), 3))
 
 
 def sphere_sweep(rng, N, turns=None):
@@ -77,16 +98,14 @@ def synthetic_mag(seed=0, N=2000, field=50.0, noise=0.3, burst_fraction=0.1, bur
     without them is the same as before they existed; `disturbed` marks bursts and spikes.
     """
     rng = np.random.default_rng(seed)
-    b = rng.uniform(-hard_iron_scale, hard_iron_scale, 3)
-    S = random_soft_iron(rng, soft_spread)
+    b, S = random_platform(rng, hard_iron_scale, soft_spread)
     u = sphere_sweep(rng, N)
     clean = (field * u) @ np.linalg.inv(S).T + b
     mask, offs = burst_mask_and_offsets(rng, N, burst_fraction, burst_length, burst_magnitude)
     raw = clean + offs + noise * rng.normal(size=(N, 3))
     if spike_fraction > 0:
-        srng = np.random.default_rng([seed, 1])
-        spikes = srng.random(N) < spike_fraction
-        raw[spikes] += srng.normal(0.0, spike_magnitude, (int(spikes.sum()), 3))
+        spikes, offsets = spike_offsets(seed, N, spike_fraction, spike_magnitude)
+        raw[spikes] += offsets
         mask = mask | spikes
     t = np.arange(N) / rate_hz
     return SyntheticMag(t=t, raw=raw, hard_iron=b, soft_iron=S, field=field, disturbed=mask, directions=u)

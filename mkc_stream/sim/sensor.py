@@ -74,6 +74,8 @@ def simulate(traj: Trajectory, sensor: SensorModel | None = None, effects=(), se
 
     effects: names, ``(name, {param: value})`` pairs, or objects with ``stage`` and
     ``apply(ctx, params)`` (custom forward models, e.g. the blind benchmark's injections).
+    seed: anything ``np.random.default_rng`` takes; a Generator is used as it is, so a preset
+    that drew its platform from it continues the same stream (:mod:`.presets`).
     """
     sensor = sensor or SensorModel()
     rng = np.random.default_rng(seed)

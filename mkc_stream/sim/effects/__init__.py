@@ -1,20 +1,24 @@
-"""The effect library: ``EFFECTS[name]`` for every effect the simulator can add.
+"""The effect library: ``EFFECTS[name]`` for every effect the simulator can add and the diagnoser
+can test.
 
-One module per effect family (thermal, electrical, drift, nonlinear, alignment, noise, timing);
-names follow docs/spec/machine-output.md.
+One module per effect family (thermal, electrical, drift, nonlinear, alignment, noise, timing).
+Each effect is one :class:`~.base.Effect` declaration in its family's module, holding both its
+forward model (the simulator's) and its diagnosis form (the diagnoser's, :mod:`.form`); the
+diagnoser indexes the forms from here. To add an effect: write its forward model and its form in
+its family's module, declare the Effect there and list it in that module's ``EFFECTS``; a new
+family module is also listed in FAMILIES below. Names follow docs/spec/machine-output.md.
 """
 from __future__ import annotations
 
 from . import alignment, drift, electrical, noise, nonlinear, thermal, timing
 from .base import STAGES, Effect, Evidence, Param, SimContext
 
-EFFECTS: dict[str, Effect] = {
-    e.name: e
-    for module in (thermal, electrical, drift, nonlinear, alignment, noise, timing)
-    for e in module.EFFECTS
-}
+#: the family modules, in the library's order
+FAMILIES = (thermal, electrical, drift, nonlinear, alignment, noise, timing)
 
-__all__ = ["EFFECTS", "STAGES", "Effect", "Evidence", "Param", "SimContext", "parse_effect"]
+EFFECTS: dict[str, Effect] = {e.name: e for module in FAMILIES for e in module.EFFECTS}
+
+__all__ = ["EFFECTS", "FAMILIES", "STAGES", "Effect", "Evidence", "Param", "SimContext", "parse_effect"]
 
 
 def parse_effect(text: str) -> tuple[str, dict]:

@@ -1,11 +1,11 @@
 """The shape of an effect in the library: named parameters with units, a forward model, the
-signals it needs, and a test of whether a recording can reveal it.
+signals it needs, a test of whether a recording can reveal it, and its diagnosis form.
 
-Why this shape: the simulator and the diagnoser must agree on what an effect *is*. The
-simulator only needs ``forward``; the diagnoser needs to know, before fitting anything, whether
-the recording holds the excitation or aux signal the effect needs (``testable``), so it can say
-"not testable" instead of "absent". The diagnoser's fitting forms live in
-:mod:`mkc_stream.diagnose.forms`, keyed by the same names.
+Why this shape: the simulator and the diagnoser must agree on what an effect *is*, so both
+read the one declaration. The simulator only needs ``forward``; the diagnoser needs to know,
+before fitting anything, whether the recording holds the excitation or aux signal the effect
+needs (``testable``), so it can say "not testable" instead of "absent", and how to fit it
+(``form``: a :class:`~.form.MeanForm` or :class:`~.form.EstimatedForm`).
 
 Units inside the simulator: uT, s, degC, A, throttle 0..1, rad. Parameters are given in the
 natural unit each one names (nT/degC, %/degC, uT/h, ms ...) and converted in ``forward``.
@@ -81,12 +81,17 @@ class Effect:
     name: str
     family: str
     stage: str
-    kind: str                           # "mean", "noise", "clock" or "mask" (how the diagnoser fits it)
     params: tuple
     needs: tuple                        # aux columns (or "acc") the effect needs to be revealed
     forward: Callable
     testable: Callable                  # (Evidence) -> (bool, reason)
+    form: object                        # how the diagnoser fits it (MeanForm or EstimatedForm)
     doc: str = ""
+
+    @property
+    def kind(self) -> str:
+        """How the diagnoser fits it (its form's kind): "mean", "noise", "clock" or "mask"."""
+        return self.form.kind
 
     def defaults(self) -> dict:
         return {p.name: p.typical for p in self.params}

@@ -7,12 +7,17 @@
   field, dm = Q(B, B) / 50 uT; q is its RMS over all directions at 50 uT (0.05-1 uT).
 * hysteresis: magnetisation lags the field; the library's form is -h tanh(dm_j/dt / rate)
   per axis, h the half-width of the loop (0.02-0.5 uT).
+
+Diagnosis: the cubic gain, the quadratic soft iron (as the five degree-2 harmonics of the field
+direction per axis) and the hysteresis (on a grid of rates) are linear in their coefficients;
+saturation is found as pile-ups at the extremes of each axis, whose samples are then left out.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from .base import Effect, Param, SimContext, coverage_ok, vec
+from .form import EstimatedForm, MeanForm, ReplicaEffect, diag, single_design, vec_magnitude
 
 F_REF = 50.0   # uT: the field at which nonlinearity magnitudes are quoted
 
@@ -60,32 +65,150 @@ def _always(ev):
     return (True, "needs no aux signal") if ev.n >= 500 else (False, f"only {ev.n} samples")
 
 
+# -- diagnosis forms ---------------------------------------------------------------------------
+
+def _nonlin_G(env, d):
+    return lambda frame, m, st: diag(((m - st.b) / env.F_ref) ** 3)
+
+
+def _nonlin_magnitude(env, d, th):
+    out = vec_magnitude(env, th, 1.0, True, "")
+    out["meaning"] = "departure at 50 uT per axis" if env.to_uT else "departure at the fitted field"
+    return out
+
+
+def _quad_basis(v):
+    """The five real degree-2 spherical harmonics of unit vectors v (N, 3), unit RMS on the sphere."""
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    return np.stack([np.sqrt(15) * x * y, np.sqrt(15) * x * z, np.sqrt(15) * y * z,
+                     np.sqrt(15 / 4) * (x * x - y * y), np.sqrt(5 / 4) * (x * x + y * y - 2 * z * z)], axis=1)
+
+
+def norm_pattern_rms(dm_of_u) -> float:
+    """RMS over directions of u . dm(u) after removing what a hard iron absorbs (degree 0 and 1):
+    the observable size of a direction-dependent raw error (a quadratic raw error has null
+    directions the norm cannot see, so its raw-frame size is not identifiable)."""
+    u = fibonacci_sphere(2000)
+    r = np.sum(u * dm_of_u(u), axis=1)
+    A = np.column_stack([np.ones(len(u)), u])
+    r = r - A @ np.linalg.lstsq(A, r, rcond=None)[0]
+    return float(np.sqrt(np.mean(r * r)))
+
+
+def _higher_order_G(env, d):
+    def g(frame, m, st):
+        mc = (m - st.b) @ st.S.T
+        Y = _quad_basis(mc / np.linalg.norm(mc, axis=1, keepdims=True))
+        out = np.zeros((m.shape[0], 3, 15))
+        for j in range(3):
+            out[:, j, 5 * j:5 * j + 5] = Y
+        return out
+    return g
+
+
+def _higher_order_magnitude(env, d, th):
+    F = float(env.base.fit.state.F)
+    val, unit = env.field_unit(norm_pattern_rms(lambda u: np.stack([_quad_basis(u) @ np.asarray(th)[5 * j:5 * j + 5]
+                                                                    for j in range(3)], axis=1))
+                               * (env.F_ref / F) ** 2)
+    return {"value": val, "unit": unit,
+            "meaning": ("RMS over directions of the field-strength error no ellipsoid can fit, at 50 uT"
+                        if env.to_uT else "RMS over directions of the field-strength error no ellipsoid can fit")}
+
+
+def _hysteresis_designs(env):
+    return [{"k": k} for k in (0.3, 1.0, 3.0)]
+
+
+def _hysteresis_G(env, d):
+    md = env.mdot()
+    eps = d["k"] * np.maximum(np.median(np.abs(md), axis=0), 1e-12)
+    x = -np.tanh(md / eps)
+    return lambda frame, m, st: diag(x)
+
+
+def _hysteresis_magnitude(env, d, th):
+    val, unit = env.field_unit(float(np.sqrt(np.mean(np.square(th)))))
+    return {"value": val, "unit": unit, "vector": [env.field_unit(x)[0] for x in th], "meaning": "loop half-width"}
+
+
+def _sat_tol(env):
+    q = np.nan_to_num(env.base.lattice["q"], nan=0.0) * (env.base.lattice["strength"] > 0.5)
+    return np.maximum(0.5 * env.base.sigma_axis, 0.51 * q)
+
+
+def _sat_estimate(env, ctx, mult):
+    m = env.frame.m[np.isin(env.frame.block, np.flatnonzero(mult > 0))]
+    tol = _sat_tol(env)
+    levels = []
+    for j in range(3):
+        for sign in (1.0, -1.0):
+            x = sign * m[:, j]
+            top = x.max()
+            n_at = int(np.sum(x >= top - tol[j]))
+            n_band = int(np.sum((x < top - tol[j]) & (x >= top - 4 * tol[j])))
+            if n_at >= max(8, 0.002 * m.shape[0]) and n_at > 2 * n_band:
+                levels.append((j, sign, float(sign * top)))
+    if not levels:
+        return None
+    return {"levels": levels, "limit": float(np.median([abs(L) for _, _, L in levels]))}
+
+
+def _sat_replica(env, p):
+    def fn(ctx):
+        for j, sign, L in p["levels"]:
+            if sign > 0:
+                np.minimum(ctx.m[:, j], L, out=ctx.m[:, j])
+            else:
+                np.maximum(ctx.m[:, j], L, out=ctx.m[:, j])
+    return [(ReplicaEffect("saturation", "range", fn), {})]
+
+
+def _sat_mask(env, p, raw):
+    tol = _sat_tol(env)
+    ok = np.ones(raw.shape[0], dtype=bool)
+    for j, sign, L in p["levels"]:
+        ok &= ~(np.abs(raw[:, j] - L) <= tol[j])
+    return ok
+
+
+def _sat_magnitude(env, p):
+    val, unit = env.field_unit(p["limit"])
+    return {"value": val, "unit": unit, "levels": [[j, s, env.field_unit(L)[0]] for j, s, L in p["levels"]]}
+
+
+# -- the library's entries ------------------------------------------------------------------------
+
 SCALE_NONLINEARITY = Effect(
-    name="scale_nonlinearity", family="nonlinear", stage="sensor", kind="mean",
+    name="scale_nonlinearity", family="nonlinear", stage="sensor",
     params=(Param("bx", "nT", 10.0, 500.0, 150.0, "departure at 50 uT, x"),
             Param("by", "nT", 10.0, 500.0, -100.0), Param("bz", "nT", 10.0, 500.0, 120.0)),
     needs=(), forward=_nonlin_forward, testable=lambda ev: coverage_ok(ev, 0.5),
+    form=MeanForm(single_design, _nonlin_G, 3, _nonlin_magnitude),
     doc="per-axis cubic gain error")
 
 SATURATION = Effect(
-    name="saturation", family="nonlinear", stage="range", kind="mask",
+    name="saturation", family="nonlinear", stage="range",
     params=(Param("limit", "uT", 30.0, 5000.0, 60.0, "output range +-limit"),),
     needs=(), forward=_saturation_forward, testable=_always,
+    form=EstimatedForm("mask", _sat_estimate, _sat_replica, _sat_magnitude, mask=_sat_mask),
     doc="output clipped at +-limit")
 
 HIGHER_ORDER_SOFT_IRON = Effect(
-    name="higher_order_soft_iron", family="nonlinear", stage="offset", kind="mean",
+    name="higher_order_soft_iron", family="nonlinear", stage="offset",
     params=(Param("q", "uT", 0.05, 1.0, 0.3, "RMS of the quadratic term at 50 uT"),
             Param("pattern", "seed", 0, 1e6, 1, "which quadratic form")),
     needs=(), forward=_higher_order_forward, testable=lambda ev: coverage_ok(ev, 0.5),
+    form=MeanForm(single_design, _higher_order_G, 15, _higher_order_magnitude),
     doc="dm = q Q(B, B) / (50 uT)^2")
 
 HYSTERESIS = Effect(
-    name="hysteresis", family="nonlinear", stage="sensor", kind="mean",
+    name="hysteresis", family="nonlinear", stage="sensor",
     params=(Param("width", "uT", 0.02, 0.5, 0.15, "half-width of the loop"),
             Param("rate", "uT/s", 0.5, 50.0, 5.0, "field rate at which the loop is fully open")),
     needs=(), forward=_hysteresis_forward,
     testable=lambda ev: coverage_ok(ev, 0.3),
+    form=MeanForm(_hysteresis_designs, _hysteresis_G, 3, _hysteresis_magnitude),
     doc="-width tanh(dm/dt / rate) per axis")
 
 EFFECTS = (SCALE_NONLINEARITY, SATURATION, HIGHER_ORDER_SOFT_IRON, HYSTERESIS)
