@@ -90,6 +90,7 @@ def render() -> str:
     from mkc_stream import kernels as KS
     from mkc_stream.calib import acceptance
     from mkc_stream.calib.streaming import MagCalibrator
+    from mkc_stream.calib.confidence import Z_SWITCH
     from mkc_stream.kernels import estep as ES
     from mkc_stream.kernels import magwindow as MW
     from mkc_stream.kernels import normaliser as NZ
@@ -177,6 +178,8 @@ def render() -> str:
     p("")
     p("/* MagCalibrator (calib/streaming.py) */")
     p(f"#define MKC_MIN_SPHERE_COVERAGE {_hex(MagCalibrator.MIN_SPHERE_COVERAGE)} /* {MagCalibrator.MIN_SPHERE_COVERAGE!r} */")
+    p(f"#define MKC_MAX_SPHERE_SPREAD {_hex(MagCalibrator.MAX_SPHERE_SPREAD)} /* {MagCalibrator.MAX_SPHERE_SPREAD!r} */")
+    p(f"#define MKC_Z_SWITCH {_hex(Z_SWITCH)} /* {Z_SWITCH!r}: calib/confidence.py */")
     p(f"#define MKC_MAX_FAILED_CHECKPOINTS {MagCalibrator.MAX_FAILED_CHECKPOINTS}")
     p(f"#define MKC_MAX_MISFIT_TRIALS {MagCalibrator.MAX_MISFIT_TRIALS}")
     p(f"#define MKC_COLD_START_ROUNDS {MagCalibrator.COLD_START_ROUNDS}")

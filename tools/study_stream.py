@@ -216,7 +216,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     for kv in args.option:
         k, v = kv.split("=", 1)
-        STREAM_OPTIONS[k] = float(v) if "." in v or "e" in v else int(v)
+        try:
+            STREAM_OPTIONS[k] = float(v) if "." in v or "e" in v else int(v)
+        except ValueError:
+            STREAM_OPTIONS[k] = v           # a word: switching=latest, policy=fifo
     fractions = [float(f) for f in args.fractions.split(",")]
     log = lambda s="": print(s, flush=True)  # noqa: E731
     peers = peer_methods(not args.no_peers)

@@ -137,9 +137,10 @@ enum {
     MKC_REASON_INDEFINITE,        /* trial is not an ellipsoid: A indefinite (v0..v2 its eigenvalues) */
     MKC_REASON_EMPTY,             /* trial is not an ellipsoid: empty/imaginary (v0 = 1 + r0'A r0) */
     MKC_REASON_SINGULAR,          /* trial is not an ellipsoid: singular matrix */
-    MKC_REASON_REJECTED           /* the predicate failed: fails bits; v0 coverage, v1 condition,
+    MKC_REASON_REJECTED,          /* the predicate failed: fails bits; v0 coverage, v1 condition,
                                      v2 outlier fraction, v3 residual/field, v4 field,
                                      v5 cold-start disagreement */
+    MKC_REASON_MOTION_WAIT        /* "waiting for motion: the window is a cloud ..." (v0 its spread) */
 };
 
 typedef struct mkc_mag_reason {

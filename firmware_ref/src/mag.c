@@ -135,10 +135,19 @@ static void fail_event(mkc_mag_t *g, int64_t seen, int64_t esteps)
  * the checkpoint continues), 0 when still waiting (the event is filled). */
 static int try_final_normalisation(mkc_mag_t *g, int count, int64_t seen, int64_t esteps)
 {
-    mkc_real b[3], F = RC(0.0), cov = RC(0.0);
+    mkc_real b[3], F = RC(0.0), cov = RC(0.0), spread;
     int ok = count >= 8 && mkc__robust_sphere_fit(g, count, b, &F);
-    if (ok)
+    /* a rest phase is a cloud of noise around one point, whose own sphere fit sees every direction */
+    spread = ok ? mkc__sphere_spread(g, count, b, F) : RC(HUGE_VAL);
+    if (ok && spread <= RC(MKC_MAX_SPHERE_SPREAD))
         cov = mkc__sphere_coverage_raw(g, count, b);
+    if (ok && spread > RC(MKC_MAX_SPHERE_SPREAD)) {
+        g->last_reason.code = MKC_REASON_MOTION_WAIT;
+        g->last_reason.fails = 0;
+        g->last_reason.v[0] = (double)spread;
+        fail_event(g, seen, esteps);
+        return 0;
+    }
     if (!ok || cov < RC(MKC_MIN_SPHERE_COVERAGE)) {
         g->last_reason.code = MKC_REASON_COVERAGE_WAIT;
         g->last_reason.fails = 0;
@@ -326,7 +335,9 @@ static void checkpoint(mkc_mag_t *g)
     cal->reason = reason;
     cal->samples_seen = seen;
     cal->esteps = esteps;
-    if (!fails) {
+    /* _offer: a passing trial replaces the accepted calibration only when the window supports it as
+     * the better fit (calib/confidence.py) */
+    if (!fails && (!g->accepted.valid || mkc__supports_switch(g, count, cal, &g->accepted))) {
         g->accepted = *cal;
         if (g->first_accepted_at < 0)
             g->first_accepted_at = seen;

@@ -144,4 +144,8 @@ mkc_real mkc__weighted_condition(mkc_mag_t *g, int count);
 uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, double disagreement,
                                mkc_mag_reason *reason);
 
+/* ---- confidence.c (calib/confidence.py supports_switch, calib/quality.py sphere_spread) ---- */
+int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *trial, const mkc_mag_calibration *acc);
+mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r);
+
 #endif /* MKC_INTERNAL_H */

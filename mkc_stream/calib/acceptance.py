@@ -87,6 +87,18 @@ def disagreement_failure(disagreement, rules: AcceptanceRules) -> str:
             f"(> {rules.max_disagreement_rel:.0%} of the field); continuing from the cold start")
 
 
+# The streaming calibrator's two waiting sentences before its final feature normalisation.
+
+def motion_wait_reason(spread, limit) -> str:
+    return (f"waiting for motion: the window is a cloud around one point (spread {spread:.0%} of its "
+            f"radius > {limit:.0%}), not a sphere: rotate the sensor through all axes")
+
+
+def coverage_wait_reason(cov, limit) -> str:
+    return (f"waiting for orientation coverage ({cov:.0%} of the sphere around a sphere fit "
+            f"< {limit:.0%}): rotate the sensor through all axes")
+
+
 def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),
           disagreement=None):
     """Return (accepted, reason); reason is '' when accepted, else every failed criterion.

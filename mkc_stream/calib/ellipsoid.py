@@ -259,6 +259,8 @@ class EllipsoidFit:
     normalisation: Normalisation
     channels: list = field(default_factory=list)     # [{"sigma": s, "d": d}] for MKC methods
     estimator: object = None
+    #: {"hard_iron_sd": [3], "heading_sd_deg"} when computed (calib/confidence.py), else None
+    uncertainty: dict | None = None
 
     def apply(self, raw):
         raw = np.asarray(raw, dtype=np.float64)
@@ -276,6 +278,7 @@ class EllipsoidFit:
             "reason": reason,
             "counts": counts,
             "method": self.method,
+            "uncertainty": jsonable(self.uncertainty),
         }
         return out
 

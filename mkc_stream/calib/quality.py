@@ -30,6 +30,13 @@ def sphere_coverage(m_cal: np.ndarray, mask=None) -> float:
     return float(np.unique(cells).size) / (N_BANDS * N_SECTORS)
 
 
+def sphere_spread(mag: np.ndarray, centre, radius) -> float:
+    """Robust scale of |m - centre| - radius relative to the radius (inf for a radius <= 0)."""
+    if not radius > 0:
+        return float("inf")
+    return float(mad_sd(np.linalg.norm(mag - np.asarray(centre), axis=1) - radius)) / float(radius)
+
+
 def norm_residuals(m_cal: np.ndarray, field: float) -> np.ndarray:
     return np.linalg.norm(m_cal, axis=1) - field
 

@@ -7,7 +7,7 @@ move the window's features are recomputed from the raw samples kept in the state
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from dataclasses import field as dc_field
 
 import numpy as np
@@ -17,17 +17,21 @@ from ..jsonout import jsonable
 from ..kernels import magwindow as MW
 from ..kernels import window as K
 from ..stream import StreamingMKC
-from .acceptance import AcceptanceRules, check
+from .acceptance import AcceptanceRules, check, coverage_wait_reason, motion_wait_reason
+from .confidence import calibration_uncertainty, supports_switch
 from .ellipsoid import (EllipsoidError, Normalisation, calibration_from_geometry, geometry_from_theta,
                         raw_geometry, robust_sphere_fit, sphere_theta)
 from .fit import weighted_condition
-from .quality import quality_figures, sphere_coverage
+from .quality import quality_figures, sphere_coverage, sphere_spread
 
 #: theta of the unit sphere (eq. (36)-(37)): the restart's start once the features are centred and
 #: scaled by the window's sphere fit
 UNIT_SPHERE_THETA = sphere_theta((0.0, 0.0, 0.0), 1.0)
 
 POLICIES = {"fifo": 0, "direction": 1}
+#: "paired": a passing trial replaces the accepted calibration only when the window supports it as the
+#: better fit (confidence.py); "latest": every passing trial does (for comparison studies)
+SWITCHING = ("paired", "latest")
 
 
 class NotCalibratedError(RuntimeError):
@@ -46,6 +50,8 @@ class Calibration:
     reason: str
     samples_seen: int
     esteps: int
+    #: {"hard_iron_sd": [3], "heading_sd_deg"} on the window it was accepted on (confidence.py)
+    uncertainty: dict | None = None
 
     def apply(self, raw):
         return (np.asarray(raw, dtype=np.float64) - self.hard_iron) @ self.soft_iron.T
@@ -56,7 +62,7 @@ class Calibration:
                 "field": float(self.field), "channels": [{"sigma": jsonable(self.sigma), "d": jsonable(self.d)}],
                 "quality": jsonable(self.quality),
                 "status": "accepted" if self.accepted else "rejected", "reason": None if self.accepted else self.reason,
-                "counts": counts}
+                "uncertainty": jsonable(self.uncertainty), "counts": counts}
 
 
 @dataclass
@@ -84,6 +90,11 @@ class MagCalibrator:
 
     #: directions around a sphere fit of the window needed before the final feature normalisation
     MIN_SPHERE_COVERAGE = 0.4
+    #: robust spread of |m - c| - r relative to r above which the window's "sphere" is a cloud of
+    #: noise around one point (a rest phase: every direction is covered by the noise itself, ~42% for
+    #: isotropic noise) rather than a surface (a sphere fit of the strongest soft iron allowed, axes
+    #: e^+-0.25, spreads <= ~18%)
+    MAX_SPHERE_SPREAD = 0.3
     #: consecutive checkpoints without an ellipsoid before the normalisation is redone
     MAX_FAILED_CHECKPOINTS = 4
     #: consecutive trials that do not fit (fit error or outlier gate) before the estimate restarts
@@ -92,13 +103,16 @@ class MagCalibrator:
     COLD_START_ROUNDS = 10
 
     def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=AcceptanceRules(),
-                 init_samples=None, keep_history=True, on_checkpoint=None, **stream_kw):
+                 init_samples=None, keep_history=True, on_checkpoint=None, switching="paired", **stream_kw):
         if policy not in POLICIES:
             raise MKCInputError(f"policy must be one of {sorted(POLICIES)}")
         if not isinstance(unit, str):
             raise MKCInputError(f"unit must be a string such as 'uT' or 'counts'; got {unit!r}")
         if not isinstance(rules, AcceptanceRules):
             raise MKCInputError(f"rules must be an AcceptanceRules; got {type(rules).__name__}")
+        if switching not in SWITCHING:
+            raise MKCInputError(f"switching must be one of {SWITCHING}; got {switching!r}")
+        self.switching = switching
         self.unit = unit
         self.rules = rules
         self.policy = policy
@@ -141,6 +155,8 @@ class MagCalibrator:
         self.trial: Calibration | None = None
         self.accepted: Calibration | None = None
         self.first_accepted_at: int | None = None
+        self.switches = 0
+        self.last_switch_test = None
         self.history: list[CheckpointEvent] = []
         self.last_event: CheckpointEvent | None = None
         self.last_reason = "warming up: not enough samples yet"
@@ -251,9 +267,7 @@ class MagCalibrator:
         cal = Calibration(b, S, F, sigma, d, quality, ok, reason, seen, esteps)
         self.trial = cal
         if ok:
-            self.accepted = cal
-            if self.first_accepted_at is None:
-                self.first_accepted_at = seen
+            self._offer(cal, raw)
         self.last_reason = "" if ok else reason
         ev = CheckpointEvent(seen, esteps, ok, reason, b, F, quality["coverage"], quality["outlier_fraction"])
         if self.keep_history:
@@ -261,6 +275,20 @@ class MagCalibrator:
         if ok:                      # only a trustworthy trial may move the feature normalisation
             self._maybe_renormalise(geom, b, F)
         return ev
+
+    def _offer(self, cal, raw):
+        """A trial that passed every gate replaces the accepted calibration only when the window
+        supports it as the better fit (confidence.supports_switch): the accepted one never moves to a
+        fit that is worse on the data in hand, nor with the noise of each new window."""
+        if self.accepted is not None and self.switching == "paired":
+            better, gain, se = supports_switch(raw, cal, self.accepted)
+            self.last_switch_test = (gain, se)
+            if not better:
+                return
+        self.accepted = replace(cal, uncertainty=calibration_uncertainty(raw, cal.hard_iron, cal.soft_iron, cal.field))
+        self.switches += 1
+        if self.first_accepted_at is None:
+            self.first_accepted_at = cal.samples_seen
 
     def _needs_confirmation(self, b, F) -> bool:
         """A trial that passes the gates is confirmed by a cold start unless it is the calibration
@@ -306,12 +334,15 @@ class MagCalibrator:
     def _try_final_normalisation(self, raw, seen, esteps):
         fit = robust_sphere_fit(raw) if len(raw) >= 8 else None
         cov = 0.0
-        if fit is not None:
+        spread = sphere_spread(raw, *fit) if fit is not None else np.inf
+        if fit is not None and spread <= self.MAX_SPHERE_SPREAD:
             b, F = fit
             cov = sphere_coverage(raw - b)
-        if fit is None or cov < self.MIN_SPHERE_COVERAGE:
-            self.last_reason = (f"waiting for orientation coverage ({cov:.0%} of the sphere around a sphere fit "
-                                f"< {self.MIN_SPHERE_COVERAGE:.0%}): rotate the sensor through all axes")
+        if fit is not None and spread > self.MAX_SPHERE_SPREAD:
+            self.last_reason = motion_wait_reason(spread, self.MAX_SPHERE_SPREAD)
+        elif fit is None or cov < self.MIN_SPHERE_COVERAGE:
+            self.last_reason = coverage_wait_reason(cov, self.MIN_SPHERE_COVERAGE)
+        if fit is None or spread > self.MAX_SPHERE_SPREAD or cov < self.MIN_SPHERE_COVERAGE:
             ev = CheckpointEvent(seen, esteps, False, self.last_reason)
             if self.keep_history:
                 self.history.append(ev)

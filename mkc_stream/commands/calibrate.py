@@ -1,6 +1,7 @@
 """`calibrate` (a recording, batch or --stream), `methods` (the calibration methods) and `demo-path`."""
 from __future__ import annotations
 
+import math
 import sys
 import time
 
@@ -14,7 +15,9 @@ def register(subparsers):
     c = subparsers.add_parser("calibrate", help="calibrate a magnetometer recording (batch)")
     c.add_argument("recording", type=input_file,
                    help="recording CSV (docs/spec/recording.md), .csv or .csv.gz; 'demo' for the bundled one")
-    c.add_argument("--method", default="mkc-em", help="mkc-em (default), mkc, ls, or a baseline (see `mkc-stream methods`)")
+    c.add_argument("--method", default="mkc-em-geo-dir",
+                   help="mkc-em-geo-dir (default: the geometric MKC-EM with direction weighting), mkc-em-geo, "
+                        "mkc-em (the paper's algebraic form), mkc, ls, or a baseline (see `mkc-stream methods`)")
     add_json_option(c)
     c.add_argument("--plot", metavar="PNG", type=writable_path, help="save a plot of the fit (needs the [plot] extra)")
     add_quiet_option(c, "no human report and no progress")
@@ -58,11 +61,19 @@ def _report(path, rec, fit, accepted, reason, unit, out):
       f"norm spread {q['norm_spread_inliers']:.2%} (inliers) / {q['norm_spread']:.2%} (all)")
     p(f"                  sphere coverage {q['coverage']:.0%}, outliers {q['outlier_fraction']:.1%}, "
       f"condition {q['condition']:.3g}")
+    _report_uncertainty(p, fit.uncertainty, unit)
     p(f"  status        : {'ACCEPTED' if accepted else 'REJECTED - ' + reason}")
+
+
+def _report_uncertainty(p, u, unit):
+    if u and all(math.isfinite(v) for v in u["hard_iron_sd"]):
+        p(f"  uncertainty   : hard iron sd {fmt_vec(u['hard_iron_sd'], unit)}, heading sd "
+          f"{u['heading_sd_deg']:.2f} deg (level, horizontal field = F; lower bounds: samples taken as independent)")
 
 
 def cmd_calibrate(args) -> int:
     from ..calib.acceptance import check
+    from ..calib.confidence import calibration_uncertainty
     from ..calib.ellipsoid import EllipsoidError
     from ..calib.fit import fit_ellipsoid, make_estimator
 
@@ -83,6 +94,7 @@ def cmd_calibrate(args) -> int:
     try:
         fit = fit_ellipsoid(rec.mag, args.method)
         accepted, reason = check(fit.quality, fit.field, unit)
+        fit.uncertainty = calibration_uncertainty(rec.mag, fit.hard_iron, fit.soft_iron, fit.field)
     except EllipsoidError as exc:
         accepted, reason = False, str(exc)
     if not args.quiet:
@@ -160,6 +172,7 @@ def _stream_calibrate(args, rec, unit, counts, out):
             q = acc.quality
             p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit}, coverage {q['coverage']:.0%}, "
               f"outliers {q['outlier_fraction']:.1%}, condition {q['condition']:.3g}")
+            _report_uncertainty(p, acc.uncertainty, unit)
             p("  status        : ACCEPTED")
     return obj, acc is not None
 

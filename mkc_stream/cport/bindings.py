@@ -28,7 +28,7 @@ QUALITY_KEYS = ("residual_rms", "residual_rms_all", "norm_spread", "norm_spread_
 (F_THETA, F_SIGMA, F_D, F_A, F_HES, F_C, F_COND, F_LAST_F, F_CNT, F_NORMAL_A, F_NORMAL_B, F_RAW, F_C0S0, F_X, F_Y,
  F_L, F_DEQ, F_XS, F_TPREV, F_SLOT_AGE, F_SLOT_CELL, F_CELL_COUNT, F_MAG_FLAGS) = range(23)
 REASON_NONE, REASON_INITIAL, REASON_PENDING, REASON_WINDOW, REASON_COVERAGE_WAIT, REASON_NOT_FINITE, \
-    REASON_INDEFINITE, REASON_EMPTY, REASON_SINGULAR, REASON_REJECTED = range(10)
+    REASON_INDEFINITE, REASON_EMPTY, REASON_SINGULAR, REASON_REJECTED, REASON_MOTION_WAIT = range(11)
 FAIL_COVERAGE, FAIL_CONDITION, FAIL_OUTLIERS, FAIL_RESIDUAL, FAIL_FIELD_RANGE, FAIL_FIELD_NONPOSITIVE = \
     1, 2, 4, 8, 16, 32
 FAIL_DISAGREEMENT = 64
@@ -240,8 +240,9 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
     if code == REASON_WINDOW:
         return f"warming up: {int(v[0])}/{int(v[1])} samples in the window"
     if code == REASON_COVERAGE_WAIT:
-        return (f"waiting for orientation coverage ({v[0]:.0%} of the sphere around a sphere fit "
-                f"< {MagCalibrator.MIN_SPHERE_COVERAGE:.0%}): rotate the sensor through all axes")
+        return A.coverage_wait_reason(v[0], MagCalibrator.MIN_SPHERE_COVERAGE)
+    if code == REASON_MOTION_WAIT:
+        return A.motion_wait_reason(v[0], MagCalibrator.MAX_SPHERE_SPREAD)
     if code == REASON_NOT_FINITE:
         return "trial is not an ellipsoid: ellipsoid parameters are not finite"
     if code == REASON_INDEFINITE:

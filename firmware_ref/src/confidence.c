@@ -1,0 +1,91 @@
+/* confidence.c: the streaming calibrator's switching test and the rest-cloud test of its sphere fit;
+ * calib/confidence.py paired_gain / supports_switch and calib/quality.py sphere_spread.
+ *
+ * Scratch at a checkpoint, after the quality figures: core.ebuf and core.R hold the two calibrations'
+ * relative residuals, g->work the copies that medians reorder and the compacted differences.
+ */
+#include "mkc_internal.h"
+
+#define MKC_OUTLIER_K 3.5          /* quality.outlier_mask(k=3.5) */
+#define MKC_MAD_SCALE 1.4826       /* robust.MAD_SCALE */
+
+/* m = S (raw_k - b); returns |m| (relative_residuals' y row and its norm) */
+static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration *c, mkc_real *m)
+{
+    mkc_real v0 = g->raw[k][0] - c->hard_iron[0], v1 = g->raw[k][1] - c->hard_iron[1];
+    mkc_real v2 = g->raw[k][2] - c->hard_iron[2];
+    int i;
+    for (i = 0; i < 3; i++)
+        m[i] = v0 * c->soft_iron[i][0] + v1 * c->soft_iron[i][1] + v2 * c->soft_iron[i][2];
+    return sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+}
+
+/* supports_switch: 1 when the window supports replacing `acc` by `trial`, i.e. gain > z se with
+ * D_k = e_a,k^2 - e_t,k^2 over the trial's inliers, e_k = |S (m_k - b)| / F - 1, gain = mean(D) and
+ * se^2 = G / (G - 1) sum_c (sum_{k in c} (D_k - gain))^2 / n^2 clustered by the trial-calibrated
+ * direction cell c (G occupied cells). */
+int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *trial, const mkc_mag_calibration *acc)
+{
+    mkc_real *et = g->core.ebuf, *ea = &g->core.R[0][0], *w = g->work, m[3], med, mad, thr, gain;
+    double sums[MKC_N_CELLS], ss = 0.0, se;
+    int used[MKC_N_CELLS], k, n = 0, j, G = 0;
+    for (k = 0; k < count; k++) {
+        et[k] = calibrated(g, k, trial, m) / trial->field - RC(1.0);
+        ea[k] = calibrated(g, k, acc, m) / acc->field - RC(1.0);
+    }
+    for (k = 0; k < count; k++)
+        w[k] = et[k];
+    med = mkc__median(w, count);
+    for (k = 0; k < count; k++)
+        w[k] = fabs(et[k] - med);
+    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    thr = RC(MKC_OUTLIER_K) * mad;
+#define IS_IN(k) (!(mad != RC(0.0) && fabs(et[(k)] - med) > thr) && isfinite(et[(k)]) && isfinite(ea[(k)]))
+    for (k = 0; k < count; k++)
+        if (IS_IN(k))
+            w[n++] = ea[k] * ea[k] - et[k] * et[k];
+    if (n < 2)
+        return 0;
+    gain = mkc__pairwise_sum(w, n) / (mkc_real)n;
+    for (k = 0; k < MKC_N_CELLS; k++) {
+        sums[k] = 0.0;
+        used[k] = 0;
+    }
+    for (k = 0, j = 0; k < count; k++) {
+        if (IS_IN(k)) {
+            mkc_real nk = calibrated(g, k, trial, m);
+            /* numpy: cal / max(|cal|, 1e-300), the zero vector's cell at |cal| = 0 */
+            int c = nk > RC(0.0) ? mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)
+                                 : mkc__unit_direction_cell(RC(0.0), RC(0.0), RC(0.0));
+            sums[c] += (double)(w[j++] - gain);
+            used[c] = 1;
+        }
+    }
+#undef IS_IN
+    for (k = 0; k < MKC_N_CELLS; k++) {
+        ss += sums[k] * sums[k];
+        G += used[k];
+    }
+    if (G < 2)
+        return 0;
+    se = sqrt(ss * (double)G / (double)(G - 1)) / (double)n;
+    return (double)gain > MKC_Z_SWITCH * se;
+}
+
+/* sphere_spread: 1.4826 MAD of |m - c| - r over the window, relative to r (HUGE_VAL for r <= 0). */
+mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r)
+{
+    mkc_real *w = g->work, med;
+    int k;
+    if (!(r > RC(0.0)) || count <= 0)
+        return RC(HUGE_VAL);
+#define DIST(k) (sqrt((g->raw[(k)][0] - c[0]) * (g->raw[(k)][0] - c[0]) + (g->raw[(k)][1] - c[1]) * (g->raw[(k)][1] - c[1]) \
+                      + (g->raw[(k)][2] - c[2]) * (g->raw[(k)][2] - c[2])) - r)
+    for (k = 0; k < count; k++)
+        w[k] = DIST(k);
+    med = mkc__median(w, count);
+    for (k = 0; k < count; k++)
+        w[k] = fabs(DIST(k) - med);
+#undef DIST
+    return RC(MKC_MAD_SCALE) * mkc__median(w, count) / r;
+}

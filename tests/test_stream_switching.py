@@ -1,0 +1,96 @@
+"""The streaming calibrator's accepted calibration: when it may change, and what it says of itself.
+
+- a rest phase before the motion must not become the features' normalisation (a noise cloud
+  around one point covers every direction around itself);
+- a passing trial replaces the accepted calibration only when the window supports it as the better
+  fit (calib/confidence.py), so a steady stream keeps one calibration instead of the latest window's;
+- a real change of the hard iron is followed;
+- the reported uncertainty matches the scatter of repeated fits when samples are independent.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mkc_stream.calib.confidence import calibration_uncertainty, paired_gain
+from mkc_stream.calib.fit import fit_ellipsoid
+from mkc_stream.calib.streaming import MagCalibrator
+from mkc_stream.calib.synthetic import synthetic_mag
+from mkc_stream._validation import MKCInputError
+
+
+def feed(cal, raw, chunk=10):
+    for s in range(0, len(raw), chunk):
+        cal.update(raw[s:s + chunk])
+    return cal
+
+
+def test_a_rest_phase_first_is_not_taken_for_a_sphere():
+    s = synthetic_mag(seed=11, N=3000, burst_fraction=0.0)
+    rng = np.random.default_rng(5)
+    rest = s.raw[0] + 0.3 * rng.normal(size=(2500, 3))        # 50 s still at 50 Hz, then the sweep
+    cal = feed(MagCalibrator(window=256, estep_every=32), np.concatenate([rest, s.raw]))
+    reasons = [ev.reason for ev in cal.history if ev.samples_seen < 2500]
+    assert any(r.startswith("waiting for motion") for r in reasons)
+    assert cal.accepted is not None
+    assert np.linalg.norm(cal.accepted.hard_iron - s.hard_iron) < 0.5
+    # the features are normalised around the sphere, not around the rest point on its surface
+    assert np.linalg.norm(cal.c0 - s.hard_iron) < 0.1 * s.field
+
+
+def test_a_steady_stream_keeps_its_calibration_instead_of_each_window():
+    s = synthetic_mag(seed=12, N=6000, burst_fraction=0.1)
+    paired = feed(MagCalibrator(window=256, estep_every=32), s.raw)
+    latest = feed(MagCalibrator(window=256, estep_every=32, switching="latest"), s.raw)
+    passing = sum(ev.accepted for ev in latest.history)
+    assert passing > 50 and latest.switches == passing
+    assert paired.switches < 0.25 * passing
+    for cal in (paired, latest):
+        assert np.linalg.norm(cal.accepted.hard_iron - s.hard_iron) < 0.3
+
+
+def test_a_new_hard_iron_is_followed():
+    a = synthetic_mag(seed=13, N=4000, burst_fraction=0.0)
+    jump = np.array([15.0, -10.0, 5.0])           # the sensor remounted near a new magnet
+    cal = feed(MagCalibrator(window=256, estep_every=32), np.concatenate([a.raw, a.raw + jump]))
+    assert np.linalg.norm(cal.accepted.hard_iron - (a.hard_iron + jump)) < 0.5
+
+
+def test_the_paired_gain_prefers_the_true_calibration():
+    s = synthetic_mag(seed=14, N=600, burst_fraction=0.1)
+
+    class Cal:
+        def __init__(self, b):
+            self.hard_iron, self.soft_iron, self.field = b, s.soft_iron, s.field
+
+    good, off = Cal(s.hard_iron), Cal(s.hard_iron + np.array([1.0, 0.0, 0.0]))
+    gain, se, n = paired_gain(s.raw, good, off)
+    assert gain > 3 * se and n > 0.8 * len(s.raw)
+    gain, se, _ = paired_gain(s.raw, off, good)
+    assert gain < -3 * se
+
+
+def test_uncertainty_matches_the_scatter_of_repeated_fits():
+    rng = np.random.default_rng(7)
+    b_true, F, noise = np.array([10.0, -20.0, 5.0]), 50.0, 0.5
+    bs, sds = [], []
+    for _ in range(40):
+        u = rng.normal(size=(800, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        raw = F * u + b_true + noise * rng.normal(size=u.shape)
+        f = fit_ellipsoid(raw, "ls")
+        bs.append(f.hard_iron)
+        sds.append(calibration_uncertainty(raw, f.hard_iron, f.soft_iron, f.field)["hard_iron_sd"])
+    empirical, predicted = np.std(bs, axis=0, ddof=1), np.mean(sds, axis=0)
+    # 40 fits: the empirical sd is itself known to ~11%
+    assert np.all(np.abs(predicted / empirical - 1) < 0.35), (predicted, empirical)
+
+
+def test_uncertainty_of_too_few_samples_is_unknown_not_an_error():
+    u = calibration_uncertainty(np.ones((5, 3)), np.zeros(3), np.eye(3), 1.0)
+    assert all(np.isnan(u["hard_iron_sd"])) and np.isnan(u["heading_sd_deg"])
+
+
+def test_switching_mode_is_checked():
+    with pytest.raises(MKCInputError, match="switching"):
+        MagCalibrator(switching="sometimes")
