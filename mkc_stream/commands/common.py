@@ -149,10 +149,14 @@ def fmt_vec(v, unit):
 # ----------------------------------------------------------------------------------------------
 
 def load_recording(path):
-    """read_recording, with every way a file can fail to be a recording mapped to a UsageError."""
+    """read_recording (or, for a flight log, ``read_flight_log``: ``LOG#instance=ID`` chooses the
+    stream), with every way a file can fail to be a recording mapped to a UsageError."""
+    from ..ingest.flightlogs import is_flight_log, read_flight_log
     from ..io.recording import read_recording
 
     try:
+        if is_flight_log(path):
+            return read_flight_log(path)
         return read_recording(path)
     except (OSError, ValueError) as exc:        # RecordingError is a ValueError
         raise UsageError(f"cannot read {path}: {exc}") from None

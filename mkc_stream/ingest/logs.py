@@ -68,12 +68,13 @@ def is_can_log(path) -> bool:
 class RecordingSource(BaseSource):
     live = False
 
-    def __init__(self, path):
+    def __init__(self, path, rec=None):
+        """``rec``: a Recording already read (a flight log's), replayed as it is."""
         from ..io.recording import RecordingError, read_recording
 
         path = pathlib.Path(path)
         try:
-            rec = read_recording(path)
+            rec = read_recording(path) if rec is None else rec
         except (OSError, RecordingError) as exc:
             raise SourceError(f"cannot read {path}: {exc}") from None
         ts = rec.meta.get("time_source", "log")

@@ -1,6 +1,9 @@
 """``open_source(url)``: one call for every kind of source, in the spirit of ``serial_for_url``.
 
 * a recording (``.csv``, ``.csv.gz``) -> :class:`~.logs.RecordingSource`
+* a flight log (PX4 ``.ulg``/``.px4log``, ArduPilot ``.bin``, MAVLink ``.tlog``, ROS bags;
+  :mod:`.flightlogs`, extra ``logs``; ``LOG#instance=ID`` or ``BAG#topic=NAME`` chooses the
+  stream) -> its Recording, replayed by :class:`~.logs.RecordingSource`
 * a python-can log (``.log``, ``.asc``, ``.blf``, ``.trc``, ``.mf4``, python-can ``.csv``)
   -> :class:`~.logs.CanLogSource` (``can_id`` or ``dbc`` + ``mapping`` choose the decoder)
 * ``can://INTERFACE/CHANNEL[?bitrate=N&can_id=0x110]`` (e.g. ``can://socketcan/can0``,
@@ -39,9 +42,10 @@ def can_decoder(can_id=None, dbc=None, mapping=None, host_time=False):
 
 
 def _looks_like_file(url: str) -> bool:
+    from .flightlogs import is_flight_log
     from .logs import CAN_LOG_SUFFIXES, _suffix
 
-    return _suffix(pathlib.Path(url)) in CAN_LOG_SUFFIXES + (".csv",)
+    return _suffix(pathlib.Path(url)) in CAN_LOG_SUFFIXES + (".csv",) or is_flight_log(url)
 
 
 def open_source(url, *, protocol=None, baud=115200, can_id=None, dbc=None, mapping=None,
@@ -67,9 +71,20 @@ def open_source(url, *, protocol=None, baud=115200, can_id=None, dbc=None, mappi
 
 
 def open_log(path, *, can_id=None, dbc=None, mapping=None):
-    """A recording or a python-can log file, by its suffix (python-can's CSV by its header)."""
+    """A recording, a flight log (:mod:`.flightlogs`: by suffix, and by content for .bin/.log) or a
+    python-can log file, by its suffix (python-can's CSV by its header)."""
+    from .flightlogs import is_flight_log, read_flight_log
     from .logs import CanLogSource, RecordingSource, is_can_log
 
+    if is_flight_log(path):
+        if dbc is not None or mapping:
+            raise SourceError(f"{path} is a flight log; --dbc/--map apply to CAN logs only")
+        from ..io.recording import RecordingError
+
+        try:
+            return RecordingSource(str(path), rec=read_flight_log(path))
+        except (OSError, RecordingError) as exc:     # FlightLogError is a RecordingError
+            raise SourceError(f"cannot read {path}: {exc}") from None
     path = pathlib.Path(path)
     if path.is_dir():
         raise SourceError(f"{path} is a directory, not a recording or a CAN log")
