@@ -140,7 +140,8 @@ enum {
     MKC_REASON_REJECTED,          /* the predicate failed: fails bits; v0 coverage, v1 condition,
                                      v2 outlier fraction, v3 residual/field, v4 field,
                                      v5 cold-start disagreement */
-    MKC_REASON_MOTION_WAIT        /* "waiting for motion: the window is a cloud ..." (v0 its spread) */
+    MKC_REASON_MOTION_WAIT,       /* "waiting for motion: the window is a cloud ..." (v0 its spread) */
+    MKC_REASON_DEGENERATE         /* no E-step yet and the normal equations singular: no ellipsoid */
 };
 
 typedef struct mkc_mag_reason {

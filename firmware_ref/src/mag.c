@@ -497,6 +497,8 @@ void mkc_mag_status_reason(const mkc_mag_t *cal, mkc_mag_reason *out)
         out->code = MKC_REASON_WINDOW;
         out->v[0] = (double)cal->core.counters.count;
         out->v[1] = cal->core.cfg.min_samples;
+    } else if (cal->core.counters.esteps == 0 && cal->core.counters.status == MKC_SINGULAR) {
+        out->code = MKC_REASON_DEGENERATE;      /* no checkpoint can come: samples on a curve or a plane */
     } else {
         *out = cal->last_reason;
     }

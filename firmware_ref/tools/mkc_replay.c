@@ -218,6 +218,10 @@ static void reason_text(sbuf *b, const mkc_mag_reason *r, const mkc_mag_rules *r
         sb_printf(b, "waiting for motion: the window is a cloud around one point (spread %.0f%% of its radius > 30%%), "
                      "not a sphere: rotate the sensor through all axes", r->v[0] * 100.0);
         return;
+    case MKC_REASON_DEGENERATE:
+        sb_printf(b, "the samples do not determine an ellipsoid (normal equations singular: they lie on a curve "
+                     "or a plane): rotate the sensor through all axes");
+        return;
     case MKC_REASON_NOT_FINITE:
         sb_printf(b, "trial is not an ellipsoid: ellipsoid parameters are not finite");
         return;

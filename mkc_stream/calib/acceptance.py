@@ -11,6 +11,7 @@ import numpy as np
 
 from .._validation import MKCInputError
 from ..units import is_microtesla
+from .result import Rejection
 
 #: Earth's field is 22-67 uT at the surface; wider bounds leave room for local anomalies.
 EARTH_FIELD_UT = (15.0, 100.0)
@@ -94,37 +95,58 @@ def motion_wait_reason(spread, limit) -> str:
             f"radius > {limit:.0%}), not a sphere: rotate the sensor through all axes")
 
 
+def degenerate_reason() -> str:
+    return ("the samples do not determine an ellipsoid (normal equations singular: they lie on a curve or "
+            "a plane): rotate the sensor through all axes")
+
+
 def coverage_wait_reason(cov, limit) -> str:
     return (f"waiting for orientation coverage ({cov:.0%} of the sphere around a sphere fit "
             f"< {limit:.0%}): rotate the sensor through all axes")
 
 
-def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),
-          disagreement=None):
-    """Return (accepted, reason); reason is '' when accepted, else every failed criterion.
+#: the checks of the predicate, in its order (Rejection.failed names them)
+CHECKS = ("coverage", "condition", "outliers", "residual", "field_range", "field_nonpositive", "disagreement")
+
+
+def evaluate(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),
+             disagreement=None):
+    """None when the calibration is accepted, else the Rejection naming every failed check.
 
     disagreement: the streaming calibrator's cold-start check, max(|b - b_cold|, |F - F_cold|) in
     the unit of the field (None: not checked).
     """
-    fails = []
     cov = quality.get("coverage", 0.0)
-    if not cov >= rules.min_coverage:
-        fails.append(coverage_failure(cov, rules))
     cond = quality.get("condition", np.inf)
-    if not cond <= rules.max_condition:
-        fails.append(condition_failure(cond, rules))
     out = quality.get("outlier_fraction", 1.0)
-    if not out <= rules.max_outlier_fraction:
-        fails.append(outlier_failure(out, rules))
     rel = quality.get("residual_rms", np.inf) / field if field > 0 else np.inf
+    failed = []
+    if not cov >= rules.min_coverage:
+        failed.append(("coverage", coverage_failure(cov, rules)))
+    if not cond <= rules.max_condition:
+        failed.append(("condition", condition_failure(cond, rules)))
+    if not out <= rules.max_outlier_fraction:
+        failed.append(("outliers", outlier_failure(out, rules)))
     if not rel <= rules.max_residual_rel:
-        fails.append(residual_failure(rel, rules))
+        failed.append(("residual", residual_failure(rel, rules)))
     if is_microtesla(unit):
         lo, hi = rules.field_range_ut
         if not lo <= field <= hi:
-            fails.append(field_range_failure(field, rules))
+            failed.append(("field_range", field_range_failure(field, rules)))
     elif not (np.isfinite(field) and field > 0):
-        fails.append(field_nonpositive_failure(field))
+        failed.append(("field_nonpositive", field_nonpositive_failure(field)))
     if disagreement is not None and not disagreement <= rules.max_disagreement_rel * abs(field):
-        fails.append(disagreement_failure(disagreement, rules))
-    return (not fails), "; ".join(fails)
+        failed.append(("disagreement", disagreement_failure(disagreement, rules)))
+    if not failed:
+        return None
+    values = {"coverage": cov, "condition": cond, "outlier_fraction": out, "residual_rel": rel, "field": field}
+    if disagreement is not None:
+        values["disagreement"] = disagreement
+    return Rejection("rejected", "; ".join(t for _, t in failed), tuple(n for n, _ in failed), values)
+
+
+def check(quality: dict, field: float, unit: str = "uT", rules: AcceptanceRules = AcceptanceRules(),
+          disagreement=None):
+    """(accepted, reason): evaluate() as a flag and the sentence ('' when accepted)."""
+    rejection = evaluate(quality, field, unit, rules, disagreement)
+    return rejection is None, "" if rejection is None else rejection.text

@@ -266,6 +266,22 @@ class EllipsoidFit:
         raw = np.asarray(raw, dtype=np.float64)
         return (raw - self.hard_iron) @ self.soft_iron.T
 
+    def calibration(self, unit: str = "uT", rules=None, raw=None):
+        """This fit as the package's Calibration (calib/result.py), accepted or rejected by the
+        acceptance predicate (calib/acceptance.py) for `unit`; with `raw` (the samples it was fitted
+        to) its uncertainty is computed when not already known (calib/confidence.py)."""
+        from .acceptance import AcceptanceRules, evaluate
+        from .result import Calibration
+
+        if raw is not None and self.uncertainty is None:
+            from .confidence import calibration_uncertainty
+
+            self.uncertainty = calibration_uncertainty(raw, self.hard_iron, self.soft_iron, self.field)
+        rejection = evaluate(self.quality, self.field, unit, rules or AcceptanceRules())
+        return Calibration(self.hard_iron, self.soft_iron, self.field, self.quality, rejection is None, rejection,
+                           method=self.method, channels=list(self.channels), uncertainty=self.uncertainty,
+                           samples_seen=int(len(self.weights)))
+
     def to_json(self, counts=None, status="accepted", reason=None):
         """The `calibrate` object of docs/spec/machine-output.md."""
         out = {

@@ -13,16 +13,16 @@ from dataclasses import field as dc_field
 import numpy as np
 
 from .._validation import MKCInputError
-from ..jsonout import jsonable
 from ..kernels import magwindow as MW
 from ..kernels import window as K
 from ..stream import StreamingMKC
-from .acceptance import AcceptanceRules, check, coverage_wait_reason, motion_wait_reason
+from .acceptance import AcceptanceRules, coverage_wait_reason, degenerate_reason, evaluate, motion_wait_reason
 from .confidence import calibration_uncertainty, supports_switch
 from .ellipsoid import (EllipsoidError, Normalisation, calibration_from_geometry, geometry_from_theta,
                         raw_geometry, robust_sphere_fit, sphere_theta)
 from .fit import weighted_condition
 from .quality import quality_figures, sphere_coverage, sphere_spread
+from .result import Calibration, Rejection
 
 #: theta of the unit sphere (eq. (36)-(37)): the restart's start once the features are centred and
 #: scaled by the window's sphere fit
@@ -36,33 +36,6 @@ SWITCHING = ("paired", "latest")
 
 class NotCalibratedError(RuntimeError):
     """apply() was called before any calibration was accepted."""
-
-
-@dataclass(frozen=True)
-class Calibration:
-    hard_iron: np.ndarray
-    soft_iron: np.ndarray
-    field: float
-    sigma: float
-    d: float
-    quality: dict
-    accepted: bool
-    reason: str
-    samples_seen: int
-    esteps: int
-    #: {"hard_iron_sd": [3], "heading_sd_deg"} on the window it was accepted on (confidence.py)
-    uncertainty: dict | None = None
-
-    def apply(self, raw):
-        return (np.asarray(raw, dtype=np.float64) - self.hard_iron) @ self.soft_iron.T
-
-    def to_json(self, counts=None):
-        return {"hard_iron": [float(v) for v in self.hard_iron],
-                "soft_iron": [[float(v) for v in r] for r in self.soft_iron],
-                "field": float(self.field), "channels": [{"sigma": jsonable(self.sigma), "d": jsonable(self.d)}],
-                "quality": jsonable(self.quality),
-                "status": "accepted" if self.accepted else "rejected", "reason": None if self.accepted else self.reason,
-                "uncertainty": jsonable(self.uncertainty), "counts": counts}
 
 
 @dataclass
@@ -159,7 +132,7 @@ class MagCalibrator:
         self.last_switch_test = None
         self.history: list[CheckpointEvent] = []
         self.last_event: CheckpointEvent | None = None
-        self.last_reason = "warming up: not enough samples yet"
+        self.last_rejection: Rejection | None = Rejection("warming_up", "warming up: not enough samples yet")
         return self
 
     # -- listeners -------------------------------------------------------------------------
@@ -234,7 +207,7 @@ class MagCalibrator:
             geom = raw_geometry(geometry_from_theta(st["theta"]), Normalisation(self.c0.copy(), self.s0))
             b, S, F = calibration_from_geometry(geom)
         except (EllipsoidError, np.linalg.LinAlgError) as exc:
-            self.last_reason = f"trial is not an ellipsoid: {exc}"
+            self.last_rejection = Rejection("not_ellipsoid", f"trial is not an ellipsoid: {exc}")
             ev = CheckpointEvent(seen, esteps, False, self.last_reason)
             if self.keep_history:
                 self.history.append(ev)
@@ -249,26 +222,29 @@ class MagCalibrator:
         m_cal = (raw - b) @ S.T
         w = st["C"][:count, 0] * d * d
         quality = quality_figures(m_cal, F, weighted_condition(st["X"][:count, 0, :], w))
-        ok, reason = check(quality, F, self.unit, self.rules)
-        if ok and self._needs_confirmation(b, F):
+        rejection = evaluate(quality, F, self.unit, self.rules)
+        if rejection is None and self._needs_confirmation(b, F):
             disagreement, cold = self._cold_start_disagreement(raw, b, F)
-            ok, reason = check(quality, F, self.unit, self.rules, disagreement=disagreement)
-            if ok:
+            rejection = evaluate(quality, F, self.unit, self.rules, disagreement=disagreement)
+            if rejection is None:
                 self._confirmed = (b, F)
             elif cold is not None:
                 b, S, F, quality, sigma, d = cold       # report (and continue from) the cold start
+        ok = rejection is None
         # Watchdog: trials that keep failing the fit gates mean the estimate no longer fits the
         # window (e.g. a wrong mode after a disturbance): redo the normalisation and restart.
-        misfit = not ok and ("fit error" in reason or "outlier fraction" in reason)
+        misfit = not ok and ("residual" in rejection.failed or "outliers" in rejection.failed)
         self._misfit = self._misfit + 1 if misfit else 0
         if self._misfit >= self.MAX_MISFIT_TRIALS:
             self._misfit = 0
             self.provisional = True
-        cal = Calibration(b, S, F, sigma, d, quality, ok, reason, seen, esteps)
+        cal = Calibration(b, S, F, quality, ok, rejection, channels=[{"sigma": sigma, "d": d}],
+                          samples_seen=seen, esteps=esteps)
         self.trial = cal
         if ok:
             self._offer(cal, raw)
-        self.last_reason = "" if ok else reason
+        self.last_rejection = rejection
+        reason = cal.reason
         ev = CheckpointEvent(seen, esteps, ok, reason, b, F, quality["coverage"], quality["outlier_fraction"])
         if self.keep_history:
             self.history.append(ev)
@@ -339,9 +315,11 @@ class MagCalibrator:
             b, F = fit
             cov = sphere_coverage(raw - b)
         if fit is not None and spread > self.MAX_SPHERE_SPREAD:
-            self.last_reason = motion_wait_reason(spread, self.MAX_SPHERE_SPREAD)
+            self.last_rejection = Rejection("waiting_motion", motion_wait_reason(spread, self.MAX_SPHERE_SPREAD),
+                                            values={"spread": spread})
         elif fit is None or cov < self.MIN_SPHERE_COVERAGE:
-            self.last_reason = coverage_wait_reason(cov, self.MIN_SPHERE_COVERAGE)
+            self.last_rejection = Rejection("waiting_coverage", coverage_wait_reason(cov, self.MIN_SPHERE_COVERAGE),
+                                            values={"coverage": cov})
         if fit is None or spread > self.MAX_SPHERE_SPREAD or cov < self.MIN_SPHERE_COVERAGE:
             ev = CheckpointEvent(seen, esteps, False, self.last_reason)
             if self.keep_history:
@@ -385,13 +363,29 @@ class MagCalibrator:
             raise NotCalibratedError(f"no calibration accepted yet ({self.status_reason()})")
         return self.accepted.apply(raw)
 
-    def status_reason(self) -> str:
+    @property
+    def last_reason(self) -> str:
+        """The last checkpoint's rejection sentence, '' when it was accepted."""
+        return "" if self.last_rejection is None else self.last_rejection.text
+
+    def status(self) -> Rejection | None:
+        """None when a calibration is accepted and the last trial passed, else why not (yet)."""
         if self.s0 <= 0:
-            return f"warming up: {len(self._pending)}/{self.init_samples} samples"
+            return Rejection("warming_up", f"warming up: {len(self._pending)}/{self.init_samples} samples",
+                             values={"samples": len(self._pending), "needed": self.init_samples})
         snap = self.stream.snapshot()
         if snap.status == "warming up":
-            return f"warming up: {snap.window_count}/{self.stream.config.effective_min_samples} samples in the window"
-        return self.last_reason or "accepted"
+            need = self.stream.config.effective_min_samples
+            return Rejection("warming_up", f"warming up: {snap.window_count}/{need} samples in the window",
+                             values={"samples": snap.window_count, "needed": need})
+        if self.stream.esteps == 0 and snap.status == "normal equations singular":
+            # no checkpoint can come: the samples lie on a curve or a plane, never on an ellipsoid
+            return Rejection("not_ellipsoid", degenerate_reason())
+        return self.last_rejection
+
+    def status_reason(self) -> str:
+        r = self.status()
+        return "accepted" if r is None else r.text
 
     def weights(self):
         """(raw samples of the window, their kernel weights): low weight = treated as disturbed."""

@@ -1,12 +1,12 @@
 """`calibrate` (a recording, batch or --stream), `methods` (the calibration methods) and `demo-path`."""
 from __future__ import annotations
 
-import math
 import sys
 import time
 
+from .calreport import calibration_lines, status_line
 from .common import (EXIT_OK, EXIT_REJECTED, Outputs, Progress, add_json_option, add_quiet_option, add_window_options,
-                     check_plot_extra, compiled_calibrator, fmt_vec, load_recording, write_json)
+                     check_plot_extra, compiled_calibrator, load_recording, write_json)
 
 
 def register(subparsers):
@@ -32,7 +32,7 @@ def register(subparsers):
     d.set_defaults(func=cmd_demo_path)
 
 
-def _report(path, rec, fit, accepted, reason, unit, out):
+def _report(path, rec, fit, cal, rejection, unit, out):
     c = rec.counts()
     p = lambda s="": print(s, file=out)  # noqa: E731
     p(f"mkc-stream calibrate: {path}")
@@ -41,41 +41,19 @@ def _report(path, rec, fit, accepted, reason, unit, out):
         shown = ", ".join(f"line {ln} ({why})" for ln, why in rec.bad_rows[:3])
         more = f" and {len(rec.bad_rows) - 3} more" if len(rec.bad_rows) > 3 else ""
         p(f"  bad rows      : {shown}{more}")
-    if fit is None:
-        p(f"  status        : REJECTED - {reason}")
+    if cal is None:
+        p(status_line(rejection))
         return
-    p(f"  method        : {fit.method}")
-    p(f"  hard iron b   : {fmt_vec(fit.hard_iron, unit)}")
-    S = fit.soft_iron
-    p(f"  soft iron S   : {fmt_vec(S[0], '')}")
-    p(f"                  {fmt_vec(S[1], '')}")
-    p(f"                  {fmt_vec(S[2], '')}   (m_cal = S (m_raw - b), det S = 1)")
-    p(f"  field F       : {fit.field:.5g} {unit}")
-    if fit.channels:
-        ch = fit.channels[0]
-        est = fit.estimator
-        extra = f", {est.n_iter_} EM rounds" if getattr(est, "em", False) else ""
-        p(f"  kernel        : sigma {ch['sigma']:.4g}, d {ch['d']:.4g}{extra}")
-    q = fit.quality
-    p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit} ({q['residual_rms'] / fit.field:.2%} of F), "
-      f"norm spread {q['norm_spread_inliers']:.2%} (inliers) / {q['norm_spread']:.2%} (all)")
-    p(f"                  sphere coverage {q['coverage']:.0%}, outliers {q['outlier_fraction']:.1%}, "
-      f"condition {q['condition']:.3g}")
-    _report_uncertainty(p, fit.uncertainty, unit)
-    p(f"  status        : {'ACCEPTED' if accepted else 'REJECTED - ' + reason}")
-
-
-def _report_uncertainty(p, u, unit):
-    if u and all(math.isfinite(v) for v in u["hard_iron_sd"]):
-        p(f"  uncertainty   : hard iron sd {fmt_vec(u['hard_iron_sd'], unit)}, heading sd "
-          f"{u['heading_sd_deg']:.2f} deg (level, horizontal field = F; lower bounds: samples taken as independent)")
+    est = fit.estimator
+    note = f", {est.n_iter_} EM rounds" if getattr(est, "em", False) else ""
+    for line in calibration_lines(cal, unit, kernel_note=note):
+        p(line)
 
 
 def cmd_calibrate(args) -> int:
-    from ..calib.acceptance import check
-    from ..calib.confidence import calibration_uncertainty
     from ..calib.ellipsoid import EllipsoidError
     from ..calib.fit import fit_ellipsoid, make_estimator
+    from ..calib.result import Rejection, no_calibration_json
 
     if not args.stream:
         make_estimator(args.method)          # unknown method -> usage error before any work
@@ -90,23 +68,20 @@ def cmd_calibrate(args) -> int:
             obj["recording"] = str(args.recording)
             outputs.attempt(args.json, write_json, obj, args.json)
         return outputs.done(EXIT_OK if accepted else EXIT_REJECTED)
-    fit, reason = None, ""
+    fit = cal = None
     try:
         fit = fit_ellipsoid(rec.mag, args.method)
-        accepted, reason = check(fit.quality, fit.field, unit)
-        fit.uncertainty = calibration_uncertainty(rec.mag, fit.hard_iron, fit.soft_iron, fit.field)
+        cal = fit.calibration(unit, raw=rec.mag)
+        rejection = cal.rejection
     except EllipsoidError as exc:
-        accepted, reason = False, str(exc)
+        rejection = Rejection("not_ellipsoid", str(exc))
     if not args.quiet:
-        _report(args.recording, rec, fit, accepted, reason, unit, sys.stderr if args.json == "-" else sys.stdout)
+        _report(args.recording, rec, fit, cal, rejection, unit, sys.stderr if args.json == "-" else sys.stdout)
     if args.json:             # the result first: a plot that fails cannot take it with it
-        if fit is None:
-            obj = {"hard_iron": None, "soft_iron": None, "field": None, "channels": [],
-                   "quality": {"residual_rms": None, "coverage": None, "outlier_fraction": None, "condition": None},
-                   "status": "rejected", "reason": reason, "counts": counts, "method": args.method}
+        if cal is None:
+            obj = no_calibration_json(rejection, counts, method=args.method)
         else:
-            obj = fit.to_json(counts=counts, status="accepted" if accepted else "rejected",
-                              reason=None if accepted else reason)
+            obj = cal.to_json(counts=counts)
             obj["units"] = {"mag": unit}
             obj["n_iter"] = int(getattr(fit.estimator, "n_iter_", 0) or 0)
         obj["recording"] = str(args.recording)
@@ -115,11 +90,13 @@ def cmd_calibrate(args) -> int:
         from ..plots import plot_calibration
 
         outputs.attempt(args.plot, plot_calibration, rec.mag, fit, args.plot, title=str(args.recording))
-    return outputs.done(EXIT_OK if accepted else EXIT_REJECTED)
+    return outputs.done(EXIT_OK if rejection is None else EXIT_REJECTED)
 
 
 def _stream_calibrate(args, rec, unit, counts, out):
     """Replay a recording through the streaming calibrator; returns (json_obj, accepted)."""
+    from ..calib.result import no_calibration_json
+
     cal = compiled_calibrator(args.window, args.estep_every, unit)
     N = len(rec.mag)
     chunk = max(1000, N // 50)
@@ -140,9 +117,7 @@ def _stream_calibrate(args, rec, unit, counts, out):
     counts["bad_frames"] += cal.counts()["bad_frames"]
     acc = cal.accepted
     if acc is None:
-        obj = {"hard_iron": None, "soft_iron": None, "field": None, "channels": [],
-               "quality": {"residual_rms": None, "coverage": None, "outlier_fraction": None, "condition": None},
-               "status": "rejected", "reason": cal.status_reason(), "counts": counts}
+        obj = no_calibration_json(cal.status(), counts)
     else:
         obj = acc.to_json(counts=counts)
     obj.update({"method": "mkc-em-stream", "window": args.window, "estep_every": args.estep_every,
@@ -161,19 +136,10 @@ def _stream_calibrate(args, rec, unit, counts, out):
             cov = "-" if ev["coverage"] is None else f"{ev['coverage']:.0%}"
             p(f"                  {ev['samples']:8d}  {'yes' if ev['accepted'] else 'no ':3s}       {hi:33s} {fld:7s} {cov}")
         if acc is None:
-            p(f"  status        : REJECTED - {cal.status_reason()}")
+            p(status_line(cal.status()))
         else:
-            p(f"  first accepted: after {cal.first_accepted_at} samples")
-            p(f"  hard iron b   : {fmt_vec(acc.hard_iron, unit)}")
-            for i, row in enumerate(acc.soft_iron):
-                p(("  soft iron S   : " if i == 0 else "                  ") + fmt_vec(row, ""))
-            p(f"  field F       : {acc.field:.5g} {unit}")
-            p(f"  kernel        : sigma {acc.sigma:.4g}, d {acc.d:.4g}")
-            q = acc.quality
-            p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit}, coverage {q['coverage']:.0%}, "
-              f"outliers {q['outlier_fraction']:.1%}, condition {q['condition']:.3g}")
-            _report_uncertainty(p, acc.uncertainty, unit)
-            p("  status        : ACCEPTED")
+            for line in calibration_lines(acc, unit, first_accepted_at=cal.first_accepted_at):
+                p(line)
     return obj, acc is not None
 
 

@@ -16,7 +16,7 @@ import pathlib
 import numpy as np
 
 # the C port's calibration and checkpoint event are the reference's own types
-from ..calib.streaming import Calibration as CCalibration
+from ..calib.result import Calibration as CCalibration
 from ..calib.streaming import CheckpointEvent as CCheckpointEvent
 from ..units import is_microtesla
 from .toolchain import BUILD_DIR, PRECISIONS, FirmwareUnavailable, build
@@ -28,7 +28,7 @@ QUALITY_KEYS = ("residual_rms", "residual_rms_all", "norm_spread", "norm_spread_
 (F_THETA, F_SIGMA, F_D, F_A, F_HES, F_C, F_COND, F_LAST_F, F_CNT, F_NORMAL_A, F_NORMAL_B, F_RAW, F_C0S0, F_X, F_Y,
  F_L, F_DEQ, F_XS, F_TPREV, F_SLOT_AGE, F_SLOT_CELL, F_CELL_COUNT, F_MAG_FLAGS) = range(23)
 REASON_NONE, REASON_INITIAL, REASON_PENDING, REASON_WINDOW, REASON_COVERAGE_WAIT, REASON_NOT_FINITE, \
-    REASON_INDEFINITE, REASON_EMPTY, REASON_SINGULAR, REASON_REJECTED, REASON_MOTION_WAIT = range(11)
+    REASON_INDEFINITE, REASON_EMPTY, REASON_SINGULAR, REASON_REJECTED, REASON_MOTION_WAIT, REASON_DEGENERATE = range(12)
 FAIL_COVERAGE, FAIL_CONDITION, FAIL_OUTLIERS, FAIL_RESIDUAL, FAIL_FIELD_RANGE, FAIL_FIELD_NONPOSITIVE = \
     1, 2, 4, 8, 16, 32
 FAIL_DISAGREEMENT = 64
@@ -225,6 +225,39 @@ def _get(lib, addr, kind, which):
 # MagCalibrator-like
 # ----------------------------------------------------------------------------------------------
 
+#: the C reason codes as Rejection codes (calib/result.py)
+REJECTION_CODE = {REASON_INITIAL: "warming_up", REASON_PENDING: "warming_up", REASON_WINDOW: "warming_up",
+                  REASON_COVERAGE_WAIT: "waiting_coverage", REASON_MOTION_WAIT: "waiting_motion",
+                  REASON_NOT_FINITE: "not_ellipsoid", REASON_INDEFINITE: "not_ellipsoid", REASON_EMPTY: "not_ellipsoid",
+                  REASON_SINGULAR: "not_ellipsoid", REASON_REJECTED: "rejected", REASON_DEGENERATE: "not_ellipsoid"}
+#: the C predicate's fail bits as acceptance.CHECKS names, in the predicate's order
+FAIL_NAMES = ((FAIL_COVERAGE, "coverage"), (FAIL_CONDITION, "condition"), (FAIL_OUTLIERS, "outliers"),
+              (FAIL_RESIDUAL, "residual"), (FAIL_FIELD_RANGE, "field_range"),
+              (FAIL_FIELD_NONPOSITIVE, "field_nonpositive"), (FAIL_DISAGREEMENT, "disagreement"))
+
+
+def rejection_from_code(code: int, fails: int, v, rules=None):
+    """The Rejection (calib/result.py) of a C reason: code, failed checks, values and the sentence
+    MagCalibrator writes; None for MKC_REASON_NONE."""
+    from ..calib.result import Rejection
+
+    if code == REASON_NONE:
+        return None
+    text = reason_text(code, fails, v, rules)
+    failed = tuple(name for bit, name in FAIL_NAMES if fails & bit) if code == REASON_REJECTED else ()
+    if code == REASON_REJECTED:
+        values = dict(zip(("coverage", "condition", "outlier_fraction", "residual_rel", "field"), map(float, v[:5])))
+        if fails & FAIL_DISAGREEMENT:
+            values["disagreement"] = float(v[5])
+    elif code == REASON_COVERAGE_WAIT:
+        values = {"coverage": float(v[0])}
+    elif code == REASON_MOTION_WAIT:
+        values = {"spread": float(v[0])}
+    else:
+        values = {}
+    return Rejection(REJECTION_CODE.get(code, "rejected"), text, failed, values)
+
+
 def reason_text(code: int, fails: int, v, rules=None) -> str:
     """MagCalibrator's reason strings (calib/streaming.py, calib/acceptance.py) from a C reason code."""
     from ..calib import acceptance as A
@@ -243,6 +276,8 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
         return A.coverage_wait_reason(v[0], MagCalibrator.MIN_SPHERE_COVERAGE)
     if code == REASON_MOTION_WAIT:
         return A.motion_wait_reason(v[0], MagCalibrator.MAX_SPHERE_SPREAD)
+    if code == REASON_DEGENERATE:
+        return A.degenerate_reason()
     if code == REASON_NOT_FINITE:
         return "trial is not an ellipsoid: ellipsoid parameters are not finite"
     if code == REASON_INDEFINITE:
@@ -344,11 +379,11 @@ class CMagCalibrator(_CoreFields):
         if not p:
             return None
         c = p.contents
-        reason = reason_text(c.reason.code, c.reason.fails, list(c.reason.v), self.rules)
         return CCalibration(np.array(c.hard_iron[:], float), np.array(c.soft_iron[:], float).reshape(3, 3),
-                            float(c.field), float(c.sigma), float(c.d),
-                            {k: float(v) for k, v in zip(QUALITY_KEYS, c.quality)}, bool(c.accepted), reason,
-                            int(c.samples_seen), int(c.esteps))
+                            float(c.field), {k: float(v) for k, v in zip(QUALITY_KEYS, c.quality)}, bool(c.accepted),
+                            rejection_from_code(c.reason.code, c.reason.fails, list(c.reason.v), self.rules),
+                            channels=[{"sigma": float(c.sigma), "d": float(c.d)}],
+                            samples_seen=int(c.samples_seen), esteps=int(c.esteps))
 
     @property
     def trial(self):
@@ -371,10 +406,15 @@ class CMagCalibrator(_CoreFields):
         return None if v < 0 else v
 
 
-    def status_reason(self) -> str:
+    def status(self):
+        """None when accepted, else the Rejection (calib/result.py) of MagCalibrator.status()."""
         r = _MagReason()
         self.lib.dll.mkc_mag_status_reason(self._addr, C.byref(r))
-        return reason_text(r.code, r.fails, list(r.v), self.rules) or "accepted"
+        return rejection_from_code(r.code, r.fails, list(r.v), self.rules)
+
+    def status_reason(self) -> str:
+        r = self.status()
+        return "accepted" if r is None else r.text
 
     def counts(self) -> dict:
         s, b = C.c_int64(), C.c_int64()
