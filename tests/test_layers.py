@@ -20,10 +20,11 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "mkc_stream"
 LAYERS = [
     # foundations: the Numba kernels and the small shared helpers they and everything else use
     {"kernels", "_numba", "_validation", "_lazy", "robust", "jsonout", "units", "recording_rules", "state"},
-    # estimators, the calibration, recordings; the analytic helpers and plots
-    {"batch", "stream", "verify", "baselines", "calib", "io", "pdf", "bounds", "plots"},
-    # the simulator and the live sources, over recordings and the calibration
-    {"sim", "ingest"},
+    # estimators, the calibration, recordings; the analytic helpers and plots; the parameter files
+    {"batch", "stream", "verify", "baselines", "calib", "io", "pdf", "bounds", "plots", "params"},
+    # the simulator, the live sources, and the calibration from flight logs (whose simulated
+    # flights use the simulator), over recordings and the calibration
+    {"sim", "ingest", "flight"},
     # the diagnoser (over the simulator) and the bridge to the C port (over the calibrator)
     {"diagnose", "cport", "firmware"},
     # the subcommands (commands/common.py is what they share)
