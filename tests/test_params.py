@@ -367,3 +367,35 @@ def test_c_header_alone_compiles_with_float_and_several_instances(tmp_path):
     assert build.returncode == 0, build.stderr
     parsed = read_params("c", tmp_path / "cal.h")
     assert [h.instance for h in parsed] == [0, 2] and parsed[0].device_id == 7
+
+
+def test_calibrate_writes_parameter_files_that_reproduce_its_calibration(tmp_path, capsys):
+    import json
+
+    from mkc_stream.calib.synthetic import synthetic_mag
+    from mkc_stream.cli import main
+    from mkc_stream.params import apply_params, read_params
+
+    s = synthetic_mag(seed=2, N=3000, burst_fraction=0.1)
+    rec = tmp_path / "rec.csv"
+    np.savetxt(rec, np.column_stack([s.t, s.raw]), delimiter=",", header="t,mx,my,mz", comments="# units.mag: uT\n")
+    ap, px = tmp_path / "c.param", tmp_path / "c.params"
+    for extra in ([], ["--stream"]):
+        code = main(["calibrate", str(rec), "--json", "-", "--quiet", "--params", f"ardupilot:{ap}",
+                     "--params", f"px4:{px}", *extra])
+        out = capsys.readouterr()
+        assert code == 0 and "ardupilot parameters written" in out.err
+        obj = json.loads(out.out)
+        b, S = np.array(obj["hard_iron"]), np.array(obj["soft_iron"])
+        ours = (s.raw - b) @ S.T                                   # uT
+        got = apply_params("ardupilot", read_params("ardupilot", ap)[0], s.raw * 10.0) / 10.0   # mGauss
+        assert np.abs(got - ours).max() <= 1e-6 * obj["field"]
+        got = apply_params("px4", read_params("px4", px)[0], s.raw / 100.0) * 100.0               # gauss
+        assert np.abs(got - ours).max() <= 1e-6 * obj["field"]
+
+
+def test_calibrate_refuses_parameters_in_counts(tmp_path, capsys):
+    from mkc_stream.cli import main
+
+    code = main(["calibrate", "demo", "--quiet", "--params", f"ardupilot:{tmp_path / 'x.param'}"])
+    assert code == 2 and "counts" in capsys.readouterr().err and not (tmp_path / "x.param").exists()

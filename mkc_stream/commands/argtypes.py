@@ -206,3 +206,15 @@ def _is_special(path: str) -> bool:
         return not stat.S_ISREG(os.stat(path).st_mode)
     except OSError:
         return False
+
+
+def params_dest(text) -> tuple:
+    """TARGET:PATH for --params: a parameter-file target (mkc_stream.params.TARGETS) and a writable file."""
+    target, sep, path = text.partition(":")
+    targets = ("ardupilot", "px4", "ros", "c")
+    if not sep or target not in targets or not path:
+        raise argparse.ArgumentTypeError(f"expected TARGET:PATH with TARGET one of {', '.join(targets)}; got {text!r}")
+    return target, writable_path(path)
+
+
+params_dest.__name__ = "parameter file"

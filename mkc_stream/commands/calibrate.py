@@ -10,7 +10,7 @@ from .common import (EXIT_OK, EXIT_REJECTED, Outputs, Progress, add_json_option,
 
 
 def register(subparsers):
-    from .argtypes import input_file, writable_path
+    from .argtypes import input_file, params_dest, writable_path
 
     c = subparsers.add_parser("calibrate", help="calibrate a magnetometer recording (batch)")
     c.add_argument("recording", type=input_file,
@@ -23,6 +23,9 @@ def register(subparsers):
     add_quiet_option(c, "no human report and no progress")
     c.add_argument("--stream", action="store_true", help="replay through the streaming calibrator (MKC-EM on a window)")
     add_window_options(c, when="--stream: ")
+    c.add_argument("--params", metavar="TARGET:PATH", type=params_dest, action="append", default=[],
+                   help="also write the accepted calibration as parameters: ardupilot:FILE.param, "
+                        "px4:FILE.params, ros:FILE.yaml or c:FILE.h (docs/params.md); repeatable")
     c.set_defaults(func=cmd_calibrate)
 
     m = subparsers.add_parser("methods", help="list the calibration methods")
@@ -63,11 +66,12 @@ def cmd_calibrate(args) -> int:
     counts = rec.counts()
     outputs = Outputs()
     if args.stream:
-        obj, accepted = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
+        obj, acc = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
+        _write_params(args, outputs, acc, unit)
         if args.json:
             obj["recording"] = str(args.recording)
             outputs.attempt(args.json, write_json, obj, args.json)
-        return outputs.done(EXIT_OK if accepted else EXIT_REJECTED)
+        return outputs.done(EXIT_OK if acc is not None else EXIT_REJECTED)
     fit = cal = None
     try:
         fit = fit_ellipsoid(rec.mag, args.method)
@@ -86,6 +90,7 @@ def cmd_calibrate(args) -> int:
             obj["n_iter"] = int(getattr(fit.estimator, "n_iter_", 0) or 0)
         obj["recording"] = str(args.recording)
         outputs.attempt(args.json, write_json, obj, args.json)
+    _write_params(args, outputs, cal if rejection is None else None, unit)
     if args.plot and fit is not None:
         from ..plots import plot_calibration
 
@@ -93,8 +98,26 @@ def cmd_calibrate(args) -> int:
     return outputs.done(EXIT_OK if rejection is None else EXIT_REJECTED)
 
 
+def _write_params(args, outputs, cal, unit):
+    """--params: the accepted calibration as each requested target's file (its note on stderr)."""
+    if not args.params:
+        return
+    if cal is None:
+        print("mkc-stream calibrate: no accepted calibration, no parameter file written", file=sys.stderr)
+        return
+    from ..params import CalibrationValues, write_params
+
+    try:
+        values = CalibrationValues(cal.hard_iron, cal.soft_iron, cal.field, unit=unit)
+    except ValueError as exc:           # counts: the targets need a physical unit
+        outputs.failed.append(f"no parameter file written: {exc}")
+        return
+    for target, path in args.params:
+        outputs.attempt(path, write_params, target, values, path)
+
+
 def _stream_calibrate(args, rec, unit, counts, out):
-    """Replay a recording through the streaming calibrator; returns (json_obj, accepted)."""
+    """Replay a recording through the streaming calibrator; returns (json_obj, the accepted Calibration or None)."""
     from ..calib.result import no_calibration_json
 
     cal = compiled_calibrator(args.window, args.estep_every, unit)
@@ -140,7 +163,7 @@ def _stream_calibrate(args, rec, unit, counts, out):
         else:
             for line in calibration_lines(acc, unit, first_accepted_at=cal.first_accepted_at):
                 p(line)
-    return obj, acc is not None
+    return obj, acc
 
 
 def cmd_methods(args) -> int:
