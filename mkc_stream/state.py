@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from ._validation import MKCInputError
+from .defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from .kernels import STATUS_TEXT
 from .kernels import window as K
 
@@ -34,8 +35,8 @@ C_INT_MAX = 2**31 - 1
 class StreamConfig:
     n: int                        # parameters (9 for the ellipsoid)
     m: int = 1                    # residual channels
-    window: int = 256             # W: samples kept
-    estep_every: int = 32         # K: E-step + rebuild every K samples
+    window: int = DEFAULT_WINDOW  # W: samples kept
+    estep_every: int = DEFAULT_ESTEP_EVERY   # K: E-step + rebuild every K samples
     # Fixed-point rounds per rebuild (stops early at fp_tol). One round per checkpoint: the
     # windows of consecutive checkpoints overlap by W - K samples, so the stream keeps iterating
     # Algorithm 1 across checkpoints; a second round costs as much as the E-step.

@@ -20,6 +20,7 @@ from ._validation import per_channel
 from .batch import DEFAULT_SIGMA_START
 from .kernels import STATUS_TEXT
 from .kernels import window as K
+from .defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from .state import KERNEL_ARGS, STATE_VERSION, StreamConfig, allocate, checked_state, state_nbytes
 
 #: what reading a damaged .npz raises (zipfile and numpy's format parser), besides OSError for a
@@ -65,7 +66,8 @@ class StreamingMKC:
     other StreamConfig fields as keywords (fp_rounds, estep_max_iter, min_samples, a_factor, ...).
     """
 
-    def __init__(self, n, m=1, window=256, estep_every=32, sigma=None, d=None, theta0=None, **config):
+    def __init__(self, n, m=1, window=DEFAULT_WINDOW, estep_every=DEFAULT_ESTEP_EVERY, sigma=None, d=None, theta0=None,
+                 **config):
         self.config = StreamConfig(n=n, m=m, window=window, estep_every=estep_every, **config)
         m, n = self.config.m, self.config.n
         # finite and > 0 per channel, as the C port's init requires (a NaN sigma ran silently singular)

@@ -19,7 +19,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "mkc_stream"
 #: package itself)
 LAYERS = [
     # foundations: the Numba kernels and the small shared helpers they and everything else use
-    {"kernels", "_numba", "_validation", "_lazy", "robust", "jsonout", "units", "recording_rules", "state"},
+    {"kernels", "_numba", "_validation", "_lazy", "robust", "jsonout", "units", "recording_rules", "state", "defaults"},
     # estimators, the calibration, recordings; the analytic helpers and plots; the parameter files
     {"batch", "stream", "verify", "baselines", "calib", "io", "pdf", "bounds", "plots", "params"},
     # the simulator, the live sources, and the calibration from flight logs (whose simulated

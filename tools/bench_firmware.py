@@ -75,9 +75,9 @@ def estep_c(est, repeat=200):
 def magcal_rate(make, raw, W):
     def run():
         cal = make()
-        cal.update(raw[:4 * W])
+        cal.learn_many(raw[:4 * W])
         t0 = time.perf_counter()
-        cal.update(raw[4 * W:])
+        cal.learn_many(raw[4 * W:])
         return time.perf_counter() - t0, cal
     dt, cal = best_of(run)
     return (len(raw) - 4 * W) / dt, cal

@@ -61,9 +61,9 @@ def magcal_throughput(raw, W, Kk, repeat=3):
     best = np.inf
     for _ in range(repeat):
         cal = MagCalibrator(window=W, estep_every=Kk, keep_history=False)
-        cal.update(raw[:4 * W])
+        cal.learn_many(raw[:4 * W])
         t0 = time.perf_counter()
-        cal.update(raw[4 * W:])
+        cal.learn_many(raw[4 * W:])
         best = min(best, time.perf_counter() - t0)
     return (len(raw) - 4 * W) / best, cal
 

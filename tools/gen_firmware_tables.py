@@ -91,6 +91,7 @@ def render() -> str:
     from mkc_stream.calib import acceptance
     from mkc_stream.calib.streaming import MagCalibrator
     from mkc_stream.calib.confidence import Z_SWITCH
+    from mkc_stream.defaults import DEFAULT_WINDOW
     from mkc_stream.kernels import estep as ES
     from mkc_stream.kernels import magwindow as MW
     from mkc_stream.kernels import normaliser as NZ
@@ -175,6 +176,8 @@ def render() -> str:
     p(f"#define MKC_DEF_FIELD_LO_UT {_hex(r.field_range_ut[0])} /* {r.field_range_ut[0]!r} */")
     p(f"#define MKC_DEF_FIELD_HI_UT {_hex(r.field_range_ut[1])} /* {r.field_range_ut[1]!r} */")
     p(f"#define MKC_DEF_MAX_DISAGREEMENT_REL {_hex(r.max_disagreement_rel)} /* {r.max_disagreement_rel!r} */")
+    p("")
+    p(f"#define MKC_DEFAULT_WINDOW {DEFAULT_WINDOW} /* defaults.py: min(MKC_W, this) is a config's default window */")
     p("")
     p("/* MagCalibrator (calib/streaming.py) */")
     p(f"#define MKC_MIN_SPHERE_COVERAGE {_hex(MagCalibrator.MIN_SPHERE_COVERAGE)} /* {MagCalibrator.MIN_SPHERE_COVERAGE!r} */")

@@ -71,7 +71,7 @@ def stream_calibrate(raw, window, estep_every, chunk=int(0.2 * RATE_HZ)):
     cal = MagCalibrator(window=window, estep_every=estep_every, keep_history=False, **STREAM_OPTIONS)
     t0 = time.perf_counter()
     for s in range(0, len(raw), chunk):
-        cal.update(raw[s:s + chunk])
+        cal.learn_many(raw[s:s + chunk])
     elapsed = time.perf_counter() - t0
     return cal, elapsed
 

@@ -44,7 +44,7 @@ def replay(raw, case, refs, window, estep_every, options):
     path = {k: [] for k in refs}
     prev = None
     for s in range(0, len(raw), chunk):
-        cal.update(raw[s:s + chunk])
+        cal.learn_many(raw[s:s + chunk])
         if cal.accepted is not None and cal.accepted is not prev:
             prev = cal.accepted
             for k, b in refs.items():

@@ -122,6 +122,8 @@ static const double mkc_gl_weights[MKC_GL_ORDER] = {
 #define MKC_DEF_FIELD_HI_UT 0x1.9000000000000p+6 /* 100.0 */
 #define MKC_DEF_MAX_DISAGREEMENT_REL 0x1.47ae147ae147bp-6 /* 0.02 */
 
+#define MKC_DEFAULT_WINDOW 512 /* defaults.py: min(MKC_W, this) is a config's default window */
+
 /* MagCalibrator (calib/streaming.py) */
 #define MKC_MIN_SPHERE_COVERAGE 0x1.999999999999ap-2 /* 0.4 */
 #define MKC_MAX_SPHERE_SPREAD 0x1.3333333333333p-2 /* 0.3 */

@@ -5,7 +5,7 @@ void mkc_config_default(mkc_config *cfg, int n, int m)
 {
     cfg->n = n;
     cfg->m = m;
-    cfg->window = MKC_W;
+    cfg->window = MKC_W < MKC_DEFAULT_WINDOW ? MKC_W : MKC_DEFAULT_WINDOW;   /* min(capacity, the default) */
     cfg->estep_every = MKC_K;
     cfg->fp_rounds = MKC_DEF_FP_ROUNDS;
     cfg->estep_max_iter = MKC_DEF_ESTEP_MAX_ITER;

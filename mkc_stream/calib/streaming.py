@@ -15,6 +15,7 @@ import numpy as np
 from .._validation import MKCInputError
 from ..kernels import magwindow as MW
 from ..kernels import window as K
+from ..defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from ..stream import StreamingMKC
 from .acceptance import AcceptanceRules, coverage_wait_reason, degenerate_reason, evaluate, motion_wait_reason
 from .confidence import calibration_uncertainty, supports_switch
@@ -75,7 +76,7 @@ class MagCalibrator:
     #: E-step + fixed-point rounds of the cold start that confirms a new calibration (batch: 10)
     COLD_START_ROUNDS = 10
 
-    def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=AcceptanceRules(),
+    def __init__(self, window=DEFAULT_WINDOW, estep_every=DEFAULT_ESTEP_EVERY, unit="uT", policy="direction", rules=AcceptanceRules(),
                  init_samples=None, keep_history=True, on_checkpoint=None, switching="paired", **stream_kw):
         if policy not in POLICIES:
             raise MKCInputError(f"policy must be one of {sorted(POLICIES)}")
@@ -147,7 +148,11 @@ class MagCalibrator:
         self._listeners.remove(fn)
 
     # -- feeding ---------------------------------------------------------------------------
-    def update(self, mags) -> list:
+    def learn_one(self, mag) -> list:
+        """Feed one raw sample (3,). Returns the checkpoint events it produced (0 or 1)."""
+        return self.learn_many(np.reshape(np.asarray(mag, dtype=np.float64), (1, 3)))
+
+    def learn_many(self, mags) -> list:
         """Feed raw samples (T, 3) or (3,). Returns the checkpoint events they produced."""
         mags = np.ascontiguousarray(np.atleast_2d(np.asarray(mags, dtype=np.float64)))
         if mags.ndim != 2 or mags.shape[1] != 3:
@@ -183,6 +188,9 @@ class MagCalibrator:
                 for fn in self._listeners:
                     fn(self)
         return events
+
+    #: the former name of learn_many, kept for one release
+    update = learn_many
 
     # -- checkpoints -----------------------------------------------------------------------
     def _window_raw(self):

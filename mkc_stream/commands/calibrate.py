@@ -126,7 +126,7 @@ def _stream_calibrate(args, rec, unit, counts, out):
     t0 = time.perf_counter()
     progress = Progress(enabled=not args.quiet)
     for start in range(0, N, chunk):
-        cal.update(rec.mag[start:start + chunk])
+        cal.learn_many(rec.mag[start:start + chunk])
         done = min(N, start + chunk)
         state = "accepted" if cal.accepted is not None else cal.status_reason()[:50]
         progress(f"  streaming {done}/{N} samples ({done / N:.0%}), {state}")

@@ -11,13 +11,11 @@ import json
 import sys
 import time
 
+from ..defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from ..jsonout import jsonable
 
 EXIT_OK, EXIT_REJECTED, EXIT_USAGE = 0, 1, 2
 EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 130, 141
-
-#: the streaming calibrator's defaults on the command line (calibrate --stream, live, replay, crosscheck)
-DEFAULT_WINDOW, DEFAULT_ESTEP_EVERY = 512, 32
 
 
 class UsageError(Exception):
@@ -185,5 +183,5 @@ def compiled_calibrator(window, estep_every, unit="uT", **kwargs):
     rng = np.random.default_rng(0)
     u = rng.normal(size=(2 * w + 64, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    warm.update(50.0 * u + np.array([10.0, -5.0, 3.0]) + 0.1 * rng.normal(size=u.shape))
+    warm.learn_many(50.0 * u + np.array([10.0, -5.0, 3.0]) + 0.1 * rng.normal(size=u.shape))
     return MagCalibrator(window=window, estep_every=estep_every, unit=unit, **kwargs)

@@ -2,7 +2,7 @@
 
     from mkc_stream.cport.bindings import CMagCalibrator, CStreamingMKC
     cal = CMagCalibrator(window=256, estep_every=32, precision="double")   # or "float"
-    cal.update(raw)                      # raw (T, 3), as MagCalibrator.update
+    cal.learn_many(raw)                  # raw (T, 3), as MagCalibrator.learn_many
     cal.accepted.hard_iron, cal.status_reason()
 
 The objects here mirror StreamingMKC and MagCalibrator closely enough for tests and tools; they are
@@ -16,6 +16,7 @@ import pathlib
 import numpy as np
 
 # the C port's calibration and checkpoint event are the reference's own types
+from ..defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from ..calib.result import Calibration as CCalibration
 from ..calib.streaming import CheckpointEvent as CCheckpointEvent
 from ..units import is_microtesla
@@ -173,7 +174,8 @@ class _CoreFields:
 class CStreamingMKC(_CoreFields):
     """The C port's generic stream, as StreamingMKC(n, m, window, estep_every, sigma, d, theta0, **config)."""
 
-    def __init__(self, n, m=1, window=256, estep_every=32, sigma=None, d=None, theta0=None, precision="double",
+    def __init__(self, n, m=1, window=DEFAULT_WINDOW, estep_every=DEFAULT_ESTEP_EVERY, sigma=None, d=None, theta0=None,
+                 precision="double",
                  **config):
         self.lib = lib = load(precision)
         if sigma is not None and "sigma_start" not in config:
@@ -310,8 +312,8 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
 class CMagCalibrator(_CoreFields):
     """The C port's MagCalibrator(window, estep_every, unit, policy, rules, init_samples, **stream_kw)."""
 
-    def __init__(self, window=256, estep_every=32, unit="uT", policy="direction", rules=None, init_samples=None,
-                 precision="double", keep_history=True, on_checkpoint=None, **stream_kw):
+    def __init__(self, window=DEFAULT_WINDOW, estep_every=DEFAULT_ESTEP_EVERY, unit="uT", policy="direction", rules=None,
+                 init_samples=None, precision="double", keep_history=True, on_checkpoint=None, **stream_kw):
         from ..calib.acceptance import AcceptanceRules
 
         self.lib = lib = load(precision)
@@ -360,7 +362,12 @@ class CMagCalibrator(_CoreFields):
         if self.on_checkpoint is not None:
             self.on_checkpoint(self)
 
-    def update(self, mags) -> list:
+    def learn_one(self, mag) -> list:
+        """Feed one raw sample (3,); the checkpoint events it produced (MagCalibrator.learn_one)."""
+        return self.learn_many(np.reshape(np.asarray(mag, dtype=np.float64), (1, 3)))
+
+    def learn_many(self, mags) -> list:
+        """Feed raw samples (T, 3); the checkpoint events they produced (MagCalibrator.learn_many)."""
         mags = np.ascontiguousarray(np.atleast_2d(np.asarray(mags, dtype=np.float64)))
         if mags.ndim != 2 or mags.shape[1] != 3:
             raise ValueError(f"magnetometer samples must have shape (T, 3); got {mags.shape}")
@@ -369,6 +376,9 @@ class CMagCalibrator(_CoreFields):
         self._events = []
         self.lib.dll.mkc_mag_push_many(self._addr, self.lib.ptr(m), m.shape[0], None)
         return self._events
+
+    #: the former name of learn_many, kept for one release
+    update = learn_many
 
     # -- inspection ---------------------------------------------------------------------------
     def get(self, which: int) -> np.ndarray:

@@ -74,7 +74,7 @@ def python_checkpoints(mags, window=256, estep_every=32, unit="uT", chunk=None, 
     mags = np.asarray(mags, dtype=np.float64)
     step = len(mags) if not chunk else chunk
     for s in range(0, max(len(mags), 1), max(step, 1)):
-        cal.update(mags[s:s + step])
+        cal.learn_many(mags[s:s + step])
     return recs, cal
 
 
@@ -97,7 +97,7 @@ def c_checkpoints(mags, window=256, estep_every=32, unit="uT", precision="double
 
     cal = CMagCalibrator(window=window, estep_every=estep_every, unit=unit, precision=precision,
                          on_checkpoint=on_checkpoint, **kw)
-    cal.update(mags)
+    cal.learn_many(mags)
     return recs, cal
 
 
@@ -157,7 +157,7 @@ def c_segment(mags, state: dict, window=256, estep_every=32, unit="uT", precisio
     load_reference_state(cal, state)
     start = int(state["next_index"])
     for t in range(start, len(mags)):
-        cal.update(mags[t])
+        cal.learn_many(mags[t])
         if out:
             return out[0]
     return None

@@ -91,7 +91,7 @@ class Run:
             if self.stop_requested:
                 self.unfed += len(mags) - a
                 break
-            events = self.calibrator.update(mags[a:a + self.feed_slice])
+            events = self.calibrator.learn_many(mags[a:a + self.feed_slice])
             if events:
                 self.last_event = events[-1]
 
