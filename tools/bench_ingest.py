@@ -6,6 +6,8 @@
     python tools/bench_ingest.py --pty-seconds 60    # also: live over a pty at 1 kHz for 60 s
     python tools/bench_ingest.py --json out/bench_ingest.json
     python tools/bench_ingest.py --readers           # only: the recording reader on 1, 10, 100 MB inputs
+    python tools/bench_ingest.py --flightlogs        # only: flight-log read speed beside each format's library
+    python tools/bench_ingest.py --mavlink-seconds 60  # only: live MAVLink over loopback UDP at 200 Hz
 
 Measures:
   - decode rate of every serial decoder (bytes fed in 4 KB chunks) and of the CAN decoders
@@ -17,6 +19,14 @@ Measures:
   - --readers: `read_recording` on inputs of 1, 10 and 100 MB (a valid recording, one line of
     garbage, a header of many commas, the last also with the header-line limit lifted), each in a
     fresh process: seconds and peak memory per MB, which must stay flat (linear reading)
+  - --flightlogs: magnetometer samples per second of `read_flight_log` (every format, the real logs
+    of ../shared/data where present, else tests/data) beside the format's own library reading the
+    same file alone (pyulog, pymavlink, rosbags; numpy.loadtxt for a recording CSV); each side is
+    timed with time.perf_counter, the two alternating, best of --repeats runs
+  - --mavlink-seconds S: `mkc-stream live --mavlink udpin:...` while an emulator process sends
+    the QMC5883L recording's samples as RAW_IMU at 200 Hz over loopback UDP: samples sent and
+    received, values checked bit for bit in the recording, loss (target 0), CPU share of the
+    live process; the emulator's end is a silent link, which must end the run cleanly
 """
 from __future__ import annotations
 
@@ -243,14 +253,178 @@ def bench_readers(sizes=(1, 10, 100)):
     return res
 
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+QMC = ROOT / "tests/data/qmc5883l-tomisuarez/filtered_raw_data.csv"
+
+
+def _first(*paths):
+    return next((p for p in paths if p.exists()), None)
+
+
+def _lib_ulog(path):
+    from pyulog import ULog
+
+    from mkc_stream.ingest.flightlogs.ulog import AUX_TOPICS, MAG_TOPICS
+
+    u = ULog(str(path), list(dict.fromkeys(MAG_TOPICS + AUX_TOPICS)))
+    return sum(len(d.data["timestamp"]) for d in u.data_list if d.name == "sensor_mag")
+
+
+def _lib_dataflash(path):
+    from pymavlink import DFReader
+
+    r = DFReader.DFReader_binary(str(path), zero_time_base=False)
+    n = 0
+    while (m := r.recv_msg()) is not None:
+        n += m.get_type() in ("MAG", "MAG2", "MAG3", "IMU")
+    return n
+
+
+def _lib_tlog(path):
+    from pymavlink import mavutil
+
+    c = mavutil.mavlink_connection(str(path))
+    n = 0
+    while (m := c.recv_msg()) is not None:
+        n += m.get_type() in ("RAW_IMU", "SCALED_IMU2")
+    c.close()
+    return n
+
+
+def _lib_rosbag(path):
+    from rosbags.highlevel import AnyReader
+
+    from mkc_stream.ingest.flightlogs.rosbag import bag_path
+
+    n = 0
+    with AnyReader([bag_path(path)]) as r:
+        conns = [c for c in r.connections if c.msgtype in ("sensor_msgs/msg/MagneticField",
+                                                           "geometry_msgs/msg/Vector3Stamped")]
+        for c, _, raw in r.messages(connections=conns):
+            r.deserialize(raw, c.msgtype)
+            n += 1
+    return n
+
+
+def _lib_recording(path):
+    with open(path) as f:
+        head = next(i for i, line in enumerate(f) if not line.startswith("#")) + 1    # metadata + header
+    return len(np.loadtxt(path, delimiter=",", skiprows=head, ndmin=2))
+
+
+def bench_flightlogs(repeats=3):
+    """Samples/s of read_flight_log (one magnetometer stream with its aux) beside the format's library
+    reading the same file alone; best of ``repeats``, the two alternating."""
+    from mkc_stream.ingest.flightlogs import read_flight_log
+    from mkc_stream.io.recording import bundled_recording_path, read_recording
+
+    cases = [
+        ("ULog (pyulog)", _first(SHARED / "flightlog-pyulog-sample/sample.ulg",
+                                 ROOT / "tests/data/flightlog-pyulog-sample/sample_log_small.ulg"), _lib_ulog),
+        ("DataFlash (pymavlink)", _first(SHARED / "flightlog-dronekit-log171/log171.bin",
+                                         ROOT / "tests/data/flightlog-dronekit-log171/log171_excerpt.bin"),
+         _lib_dataflash),
+        ("px4log (pymavlink)", _first(SHARED / "flightlog-px4tools-px4log/01_07_59.px4log"), _lib_dataflash),
+        ("tlog (pymavlink)", ROOT / "tests/data/flightlog-tlog-from-log171/log171_excerpt.tlog", _lib_tlog),
+        ("ROS 1 bag (rosbags)", _first(SHARED / "rosbag-imu-tools/phidgets_imu_upside_down.bag"), _lib_rosbag),
+        ("ROS 2 MCAP bag (rosbags)", ROOT / "tests/data/rosbag-ck-explorer-ros2/ck_explorer_bag", _lib_rosbag),
+        ("recording CSV (numpy.loadtxt)", bundled_recording_path(), _lib_recording),
+    ]
+    out = {}
+    for name, path, lib in cases:
+        if path is None:
+            out[name] = None
+            continue
+        ours_s, lib_s = [], []
+        n = 0
+        ours = read_recording if name.startswith("recording") else read_flight_log
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            n = len(ours(path))
+            ours_s.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            lib(path)
+            lib_s.append(time.perf_counter() - t0)
+        out[name] = {"file": str(path), "MB": path.stat().st_size / 1e6 if path.is_file() else None,
+                     "samples": n, "ours_s": min(ours_s), "library_s": min(lib_s),
+                     "ours_samples_per_s": n / min(ours_s), "library_samples_per_s": n / min(lib_s)}
+    return out
+
+
+_MAVLINK_EMULATOR = """
+import sys, numpy as np
+from mkc_stream.ingest.emulator import send_mavlink
+mag = np.loadtxt(sys.argv[1], delimiter=",", skiprows=3).astype(int)[: int(sys.argv[3])]
+st = send_mavlink(("127.0.0.1", int(sys.argv[2])), mag, float(sys.argv[4]), wait_s=60.0)
+print(st["imu_sent"], st["frames_sent"], len(st["commands"]))
+"""
+
+
+def bench_mavlink(seconds, rate=200.0):
+    """live --mavlink over loopback UDP while a separate emulator process sends ``seconds`` x ``rate``
+    RAW_IMU samples of the QMC5883L recording; the run ends when the emulator stops (a silent link)."""
+    import socket
+
+    from mkc_stream.io.recording import read_recording
+
+    n = int(seconds * rate)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    emu = subprocess.Popen([sys.executable, "-c", _MAVLINK_EMULATOR, str(QMC), str(port), str(n), str(rate)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = pathlib.Path(tmp) / "mavlink.csv"
+        buf = io.StringIO()
+        with redirect_stdout(buf):
+            code = cli_main(["live", "--mavlink", f"udpin:127.0.0.1:{port}", "--mavlink-rate", str(rate),
+                             "--link-timeout", "2", "--out", str(out), "--json", "-", "--quiet"])
+        emu_out, emu_err = emu.communicate(timeout=60)
+        obj = json.loads(buf.getvalue())
+        rec = read_recording(out)
+    sent = int(emu_out.split()[0]) if emu_out.strip() else None
+    mag = np.loadtxt(QMC, delimiter=",", skiprows=3).astype(int)[:n] * 0.1
+    k = np.rint(rec.t / (1.0 / rate)).astype(int)           # the sample index from time_usec
+    exact = bool(len(k) and np.array_equal(rec.mag, mag[k]) and np.array_equal(k, np.arange(len(k))))
+    return {"seconds": seconds, "rate_hz": rate, "sent": sent, "received": obj["counts"]["samples"],
+            "lost": None if sent is None else sent - obj["counts"]["samples"], "counts": obj["counts"],
+            "values_bit_identical_in_order": exact, "ended": obj["ended"], "message": obj["message"],
+            "exit_code": code, "elapsed_s": obj["elapsed_s"], "cpu_percent_live": obj["cpu_percent"],
+            "status": obj["status"], "emulator_stderr": emu_err.strip()[-300:]}
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="10^5-sample replay instead of 10^6")
     p.add_argument("--pty-seconds", type=float, default=0.0, help="also run live over a pty at 1 kHz this long")
     p.add_argument("--json", help="write the figures here")
     p.add_argument("--readers", action="store_true", help="only the recording reader on 1, 10, 100 MB inputs")
+    p.add_argument("--flightlogs", action="store_true", help="only: flight-log read speed beside each library")
+    p.add_argument("--repeats", type=int, default=3, help="--flightlogs: best of this many runs (default 3)")
+    p.add_argument("--mavlink-seconds", type=float, default=0.0,
+                   help="only: live MAVLink over loopback UDP at 200 Hz for this many seconds")
     a = p.parse_args(argv)
     res = {}
+    if a.flightlogs or a.mavlink_seconds:
+        if a.flightlogs:
+            print(f"flight-log read speed, magnetometer samples/s (best of {a.repeats}):")
+            res["flightlogs"] = bench_flightlogs(a.repeats)
+            for k, v in res["flightlogs"].items():
+                print(f"  {k:30s} " + ("no file" if v is None else
+                      f"{v['samples']:7d} samples: ours {v['ours_samples_per_s']:12,.0f}/s ({v['ours_s']:.3f} s), "
+                      f"library alone {v['library_samples_per_s']:12,.0f}/s ({v['library_s']:.3f} s)"))
+        if a.mavlink_seconds:
+            res["mavlink"] = m = bench_mavlink(a.mavlink_seconds)
+            print(f"live MAVLink over loopback UDP, {m['rate_hz']:g} Hz for {m['seconds']:g} s: sent {m['sent']}, "
+                  f"received {m['received']}, lost {m['lost']}, counts {m['counts']}, values bit-identical in "
+                  f"order: {m['values_bit_identical_in_order']}; ended: {m['ended']} ({m['message']}), exit "
+                  f"{m['exit_code']}; cpu of the live process {m['cpu_percent_live']:.1f}% over "
+                  f"{m['elapsed_s']:.1f} s; calibration {m['status']}")
+        if a.json:
+            pathlib.Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+            pathlib.Path(a.json).write_text(json.dumps(res, indent=2))
+        return 0
     if a.readers:
         print("read_recording, each input in a fresh process (peak = max RSS growth while reading):")
         res["readers"] = bench_readers()

@@ -10,4 +10,5 @@ COMMAND_MODULES: list[str] = [
     "mkc_stream.commands.ingest",
     "mkc_stream.commands.sim",
     "mkc_stream.commands.crosscheck",
+    "mkc_stream.commands.inspect",
 ]

@@ -3,6 +3,7 @@
     mkc-stream live --port /dev/ttyACM0 --protocol motioncal --out rec.csv
     mkc-stream live -i socketcan -c can0 --can-id 0x110 --duration 60 --json -
     mkc-stream record --port /dev/ttyUSB0 --baud 921600 --protocol binary --out rec.csv
+    mkc-stream live --mavlink udpin:0.0.0.0:14550 --out rec.csv
     mkc-stream replay rec.csv --realtime
     mkc-stream replay log.mf4 --dbc imu.dbc --map mx=MagX,my=MagY,mz=MagZ
 
@@ -16,13 +17,15 @@ import math
 import shutil
 import sys
 
+from .calreport import calibration_lines, status_line
 from .common import (EXIT_OK, EXIT_REJECTED, EXIT_USAGE, Outputs, UsageError, add_json_option, add_quiet_option,
                      add_window_options, compiled_calibrator, fmt_vec, write_json)
 
 EPILOG_SOURCE = ("SOURCE is --port PORT [--baud B] --protocol P for a serial port (PORT a device path or a "
                  "pyserial URL such as socket://host:port), or python-can's -i/--interface, -c/--channel, "
                  "-b/--bitrate [--bus-kwargs K=V ...] with --can-id ID or --dbc FILE --map COL=SIGNAL,... "
-                 "for a CAN bus.")
+                 "for a CAN bus, or --mavlink CONN (a pymavlink connection string: udpin:0.0.0.0:14550, "
+                 "tcp:host:port, a serial device) for an autopilot's MAVLink link.")
 
 #: replay --realtime: the longest wall-clock wait between two samples (longer steps are shortened)
 REPLAY_MAX_STEP_S = 1.0
@@ -46,7 +49,7 @@ def _add_decoding(p):
 
 def _add_source(p):
     from ..ingest.protocols import ALIASES, PROTOCOLS
-    from .argtypes import positive_int, writable_path
+    from .argtypes import positive_float, positive_int, writable_path
 
     g = p.add_argument_group("serial source")
     g.add_argument("--port", help="serial device path or pyserial URL (loop://, socket://host:port, ...)")
@@ -67,6 +70,17 @@ def _add_source(p):
     b.add_argument("--data-bitrate", type=positive_int, default=argparse.SUPPRESS, help="CAN FD data-phase bitrate")
     b.add_argument("--bus-kwargs", nargs="+", default=argparse.SUPPRESS, metavar="KEY=VALUE",
                    help="more keyword arguments for can.Bus, e.g. sleep_after_open=0 tty_baudrate=921600")
+    m = p.add_argument_group("MAVLink source (needs the [mavlink] extra)")
+    m.add_argument("--mavlink", metavar="CONN",
+                   help="pymavlink connection string: udpin:0.0.0.0:14550, udp:, udpout:HOST:PORT, tcp:HOST:PORT, "
+                        "or a serial device (with --baud)")
+    m.add_argument("--mavlink-message", metavar="MSG",
+                   help="magnetometer message: RAW_IMU, SCALED_IMU, SCALED_IMU2, SCALED_IMU3, HIGHRES_IMU "
+                        "(default: the first that arrives)")
+    m.add_argument("--mavlink-rate", type=positive_float, default=100.0, metavar="HZ",
+                   help="message rate to request from the autopilot (default 100 Hz)")
+    m.add_argument("--link-timeout", type=positive_float, default=5.0, metavar="S",
+                   help="end the run when the link sends nothing for S seconds (default 5)")
     _add_decoding(p)
     p.add_argument("--raw-out", metavar="FILE", type=writable_path,
                    help="CAN: also write every raw frame with python-can's writer for this suffix "
@@ -144,11 +158,13 @@ def _open_live_source(args, notify, raw_out=None):
     from ..ingest.source import SourceError
 
     is_can = any(hasattr(args, k) for k in ("interface", "channel"))
-    if args.port and is_can:
-        raise UsageError("give either --port (serial) or -i/-c (CAN), not both")
-    if not args.port and not is_can:
-        raise UsageError("no source: give --port PORT --protocol P, or -i INTERFACE -c CHANNEL")
+    if sum(map(bool, (args.port, is_can, args.mavlink))) > 1:
+        raise UsageError("give one source: --port (serial), -i/-c (CAN) or --mavlink, not both")
+    if not args.port and not is_can and not args.mavlink:
+        raise UsageError("no source: give --port PORT --protocol P, -i INTERFACE -c CHANNEL, or --mavlink CONN")
     try:
+        if args.mavlink:
+            return _open_mavlink(args)
         if args.port:
             if not args.protocol:
                 raise UsageError("--port needs --protocol (" + ", ".join(_protocols()) + ")")
@@ -167,6 +183,15 @@ def _open_live_source(args, notify, raw_out=None):
         return CanBusSource(bus, decoder, url=url, raw_out=raw_out)
     except SourceError as exc:
         raise UsageError(str(exc)) from None
+
+
+def _open_mavlink(args):
+    from ..ingest.mavlink_source import MAVLinkSource
+
+    if args.protocol or args.dbc or args.map or args.can_id is not None:
+        raise UsageError("--protocol/--can-id/--dbc/--map do not apply to --mavlink")
+    return MAVLinkSource(args.mavlink, message=args.mavlink_message, rate_hz=args.mavlink_rate, baud=args.baud,
+                         silence_s=args.link_timeout)
 
 
 def _protocols():
@@ -340,10 +365,10 @@ def _result_json(command, src, run, result, recorder):
     if acc is not None:
         obj = acc.to_json(counts=counts)
     else:
-        reason = "no calibration (record)" if cal is None else cal.status_reason()
-        obj = {"hard_iron": None, "soft_iron": None, "field": None, "channels": [],
-               "quality": {"residual_rms": None, "coverage": None, "outlier_fraction": None, "condition": None},
-               "status": "rejected", "reason": reason, "counts": counts}
+        from ..calib.result import Rejection, no_calibration_json
+
+        why = Rejection("no_calibration", "no calibration (record)") if cal is None else cal.status()
+        obj = no_calibration_json(why, counts)
     span = None if result.t_first is None else result.t_last - result.t_first
     obj.update({
         "command": command,
@@ -421,17 +446,10 @@ def _report(command, src, run, result, recorder, obj, out):
         return
     acc = cal.accepted
     if acc is None:
-        p(f"  status        : REJECTED - {cal.status_reason()}")
+        p(status_line(cal.status()))
         return
-    p(f"  first accepted: after {cal.first_accepted_at} samples")
-    p(f"  hard iron b   : {fmt_vec(acc.hard_iron, unit)}")
-    for i, row in enumerate(acc.soft_iron):
-        p(("  soft iron S   : " if i == 0 else "                  ") + fmt_vec(row, ""))
-    p(f"  field F       : {acc.field:.5g} {unit}")
-    q = acc.quality
-    p(f"  quality       : inlier residual rms {q['residual_rms']:.4g} {unit}, coverage {q['coverage']:.0%}, "
-      f"outliers {q['outlier_fraction']:.1%}, condition {q['condition']:.3g}")
-    p("  status        : ACCEPTED")
+    for line in calibration_lines(acc, unit, first_accepted_at=cal.first_accepted_at):
+        p(line)
 
 
 def _finish(args, command, src, run, result, recorder) -> int:

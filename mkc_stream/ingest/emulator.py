@@ -9,7 +9,8 @@ real back-pressure. Like a UART, it never blocks: when the reader does not read 
 buffer is full, frames are dropped (counted as overruns; the sequence counter still advances,
 so the reader can count the drops). ``--protocol slcan`` behaves as a serial-CAN adapter: it
 answers the slcan commands and streams the built-in CAN frame once the channel is opened
-(``O``). ``--drop-every N`` skips every N-th frame and ``--corrupt P`` flips bytes with
+(``O``). ``--mavlink HOST:PORT`` sends MAVLink 2 over UDP instead (:func:`send_mavlink`).
+``--drop-every N`` skips every N-th frame and ``--corrupt P`` flips bytes with
 probability P, to test that a reader counts what it lost. The signal is a sensor sweeping the
 sphere in a 50 uT field with hard and soft iron, gravity at a fixed angle to the field.
 """
@@ -267,6 +268,89 @@ def run_can(bus, rate, count=None, duration=None, can_id=DEFAULT_CAN_ID, seed=0,
     return sent
 
 
+def send_mavlink(dest, mag_mg, rate=200.0, stop=None, corrupt_every=0, wait_s=10.0, linger_s=0.0, sysid=1,
+                 compid=1):
+    """An autopilot on a UDP link: RAW_IMU with ``mag_mg`` (n, 3) integer milligauss at ``rate`` Hz
+    (time_usec = k x 1e6 / rate), ATTITUDE every 4th and SYS_STATUS every 20th sample, HEARTBEAT
+    every second, each frame one datagram to ``dest`` (host, port), encoded by pymavlink. Every
+    ``corrupt_every``-th RAW_IMU frame gets one payload byte flipped (its CRC then fails). Commands
+    the reader sends back (rate requests) are collected. Ends after the last sample or when
+    ``stop`` (a threading.Event) is set; returns what it did. First it sends HEARTBEATs until the
+    reader answers (up to ``wait_s`` s; 0: start at once), so no sample goes to a port not yet open;
+    after the last sample it goes on sending HEARTBEATs alone for ``linger_s`` s (a vehicle that
+    stopped streaming its IMU)."""
+    import socket
+
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    stats = {"imu_sent": 0, "frames_sent": 0, "corrupted": [], "commands": [], "data_streams": [], "heard": 0}
+
+    def send(msg, corrupt=False):
+        buf = bytearray(msg.pack(mav))
+        mav.seq = (mav.seq + 1) % 256
+        if corrupt:
+            buf[12] ^= 0x55               # a payload byte (the MAVLink 2 header is 10 bytes)
+        sock.sendto(bytes(buf), dest)
+        stats["frames_sent"] += 1
+
+    def listen():
+        while True:
+            try:
+                data = sock.recv(4096)
+            except (BlockingIOError, OSError):
+                return
+            for m in parser.parse_buffer(data) or []:
+                stats["heard"] += 1
+                if m.get_type() == "COMMAND_LONG":
+                    stats["commands"].append((m.command, int(m.param1), m.param2))
+                elif m.get_type() == "REQUEST_DATA_STREAM":
+                    stats["data_streams"].append((m.req_stream_id, m.req_message_rate))
+
+    mag_mg = np.asarray(mag_mg).astype(int)
+    period_us = int(round(1e6 / rate))
+    give_up = time.monotonic() + wait_s
+    while wait_s and not (stats["commands"] or stats["heard"]) and time.monotonic() < give_up:
+        if stop is not None and stop.is_set():
+            break
+        send(mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0))
+        time.sleep(0.02)
+        listen()
+    start = time.monotonic()
+    try:
+        for k in range(mag_mg.shape[0]):
+            if stop is not None and stop.is_set():
+                break
+            time.sleep(max(0.0, start + k / rate - time.monotonic()))
+            listen()
+            t_us = k * period_us
+            if k % int(rate) == 0:
+                send(mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0))
+            corrupt = bool(corrupt_every) and k % corrupt_every == corrupt_every - 1
+            x, y, z = (int(v) for v in mag_mg[k])
+            send(mav.raw_imu_encode(t_us, 0, 0, -1000, 0, 0, 0, x, y, z, 0, 2500), corrupt)
+            stats["imu_sent"] += 1
+            if corrupt:
+                stats["corrupted"].append(k)
+            if k % 4 == 0:
+                send(mav.attitude_encode(t_us // 1000, 0.1, -0.2, 1.5, 0.0, 0.0, 0.0))
+            if k % 20 == 0:
+                send(mav.sys_status_encode(0, 0, 0, 0, 12000, 1234, -1, 0, 0, 0, 0, 0, 0))
+        end = time.monotonic() + linger_s
+        while time.monotonic() < end and not (stop is not None and stop.is_set()):
+            send(mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0))
+            time.sleep(0.05)
+        listen()
+    finally:
+        sock.close()
+    return stats
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m mkc_stream.ingest.emulator", description=__doc__.split("\n")[0])
     p.add_argument("--protocol", default="binary", choices=PROTOCOLS)
@@ -282,6 +366,8 @@ def main(argv=None) -> int:
     out.add_argument("--pty", action="store_true", help="create a pty pair and print 'PTY <path>' first")
     out.add_argument("--port", help="write to this serial port or pyserial URL")
     out.add_argument("--can-interface", help="send CAN frames on this python-can interface (with --can-channel)")
+    out.add_argument("--mavlink", metavar="HOST:PORT", help="send MAVLink RAW_IMU (the sweep, in milligauss) over "
+                                                           "UDP to HOST:PORT (e.g. a reader on udpin:0.0.0.0:14550)")
     p.add_argument("--link", help="--pty: also make this symlink to the pty (a stable name across restarts)")
     p.add_argument("--can-channel", help="the python-can channel for --can-interface")
     a = p.parse_args(argv)
@@ -290,6 +376,13 @@ def main(argv=None) -> int:
     cpu0, t0 = time.process_time(), time.monotonic()
     emu = Emulator(a.protocol, a.rate, a.seed, a.count, a.duration, a.drop_every, a.corrupt, a.can_id, a.sweep_s)
     try:
+        if a.mavlink:
+            host, _, port = a.mavlink.rpartition(":")
+            n = a.count or int((a.duration or 60.0) * a.rate)
+            mag = np.rint(10.0 * DeviceModel(a.seed, a.rate, sweep_s=a.sweep_s).block(0, n)[1])   # uT -> mG
+            st = send_mavlink((host or "127.0.0.1", int(port)), mag, a.rate)
+            print(f"emulator: sent {st['imu_sent']} RAW_IMU in {st['frames_sent']} MAVLink frames", file=sys.stderr)
+            return 0
         if a.can_interface:
             import can
 

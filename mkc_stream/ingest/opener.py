@@ -8,6 +8,9 @@
   -> :class:`~.logs.CanLogSource` (``can_id`` or ``dbc`` + ``mapping`` choose the decoder)
 * ``can://INTERFACE/CHANNEL[?bitrate=N&can_id=0x110]`` (e.g. ``can://socketcan/can0``,
   ``can://virtual/test``, ``can://slcan//dev/ttyACM0``) -> :class:`~.can_source.CanBusSource`
+* ``mavlink:CONN`` with any pymavlink connection string (``mavlink:udpin:0.0.0.0:14550``,
+  ``mavlink:tcp:127.0.0.1:5760``, ``mavlink:/dev/ttyACM0``; keyword arguments ``message``,
+  ``rate_hz``, ``silence_s``) -> :class:`~.mavlink_source.MAVLinkSource` (extra ``mavlink``)
 * anything else is a serial port: a device path (``/dev/ttyUSB0``, ``COM3``), optionally
   prefixed ``serial:``, or a pyserial URL (``loop://``, ``socket://host:port``, ``rfc2217://``)
   -> :class:`~.serial_source.SerialSource` (``protocol`` required).
@@ -55,6 +58,12 @@ def open_source(url, *, protocol=None, baud=115200, can_id=None, dbc=None, mappi
     scheme = url.split("://", 1)[0].lower() if "://" in url else ""
     if scheme == "can":
         return _open_can_url(url, can_id, dbc, mapping, raw_out, bus_kwargs)
+    if url.lower().startswith("mavlink:"):
+        from .mavlink_source import MAVLinkSource
+
+        conn = url[len("mavlink:"):]
+        conn = conn[2:] if conn.startswith("//") else conn
+        return MAVLinkSource(conn, baud=baud, **bus_kwargs)
     if not scheme and (pathlib.Path(url).is_file() or _looks_like_file(url)):
         return open_log(url, can_id=can_id, dbc=dbc, mapping=mapping)
     if protocol is None:

@@ -29,6 +29,8 @@ AUX_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION", "SYS_STATUS", "BATTERY_STATUS
 AP_COMPASS = {"RAW_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 G0 = 9.80665
+#: milligauss -> uT
+MG_TO_UT = 0.1
 
 
 def _collect(path):
@@ -68,6 +70,7 @@ def _collect(path):
 
 
 def _boot_time(d):
+    """The message's time since the autopilot's boot (s)."""
     if "time_usec" in d:
         return d["time_usec"] * 1e-6
     return d["time_boot_ms"] * 1e-3
@@ -107,8 +110,10 @@ def _undo(kind, msgs, params, m_mg):
     return raw, f"raw: COMPASS_OFS{suf}/DIA{suf}/ODI{suf} from the log's parameters were undone", applied
 
 
-def _stream(msgs, kind):
-    rows = msgs[kind]
+def imu_arrays(kind, rows):
+    """One IMU message kind's rows ``[(receive_time, message dict), ...]`` as arrays: boot time (s),
+    receive time, magnetometer (milligauss; x MG_TO_UT -> uT) and ``ax..gz``/``temp`` in the
+    recording's units. Shared by the .tlog reader and the live link, so both convert alike."""
     t = np.array([_boot_time(d) for _, d in rows], dtype=np.float64)
     recv = np.array([r for r, _ in rows], dtype=np.float64)
     col = lambda f: np.array([d.get(f, np.nan) for _, d in rows], dtype=np.float64)  # noqa: E731
@@ -124,10 +129,27 @@ def _stream(msgs, kind):
             aux[c] = col(f) * 1e-3 * G0                        # mG -> m/s^2
         for c, f in zip(("gx", "gy", "gz"), ("xgyro", "ygyro", "zgyro")):
             aux[c] = col(f) * 1e-3                             # mrad/s -> rad/s
-        if "temperature" in rows[0][1]:
+        if rows and "temperature" in rows[0][1]:
             temp = col("temperature")
             aux["temp"] = np.where(temp == 0, np.nan, temp * 0.01)   # cdegC; 0 = not sent
     return t, recv, mag, aux
+
+
+def battery_current_a(centi_amps):
+    """BATTERY_STATUS/SYS_STATUS ``current_battery`` (cA, -1 = unknown) -> A."""
+    cur = np.asarray(centi_amps, dtype=np.float64)
+    return np.where(cur < 0, np.nan, cur * 0.01)
+
+
+def battery_voltage_v(millivolts):
+    """SYS_STATUS ``voltage_battery`` (mV, 65535 = unknown) -> V."""
+    v = np.asarray(millivolts, dtype=np.float64)
+    return np.where(v >= 65535, np.nan, v * 1e-3)
+
+
+def gps_position(lat_e7, lon_e7, alt_mm):
+    """GPS_RAW_INT degE7, degE7, mm -> (lat deg, lon deg, alt m above mean sea level)."""
+    return (np.asarray(lat_e7) * 1e-7, np.asarray(lon_e7) * 1e-7, np.asarray(alt_mm) * 1e-3)
 
 
 def _aux(msgs, t, offset):
@@ -149,18 +171,17 @@ def _aux(msgs, t, offset):
     for kind in ("BATTERY_STATUS", "SYS_STATUS"):
         rows = msgs[kind]
         if rows:
-            cur = np.array([d["current_battery"] for _, d in rows], dtype=np.float64)
-            aux["current"] = align(t, on_boot(rows), np.where(cur < 0, np.nan, cur * 0.01))   # cA, -1 unknown
+            cur = battery_current_a([d["current_battery"] for _, d in rows])
+            aux["current"] = align(t, on_boot(rows), cur)
             if kind == "SYS_STATUS":
-                v = np.array([d["voltage_battery"] for _, d in rows], dtype=np.float64)
-                aux["voltage"] = align(t, on_boot(rows), np.where(v >= 65535, np.nan, v * 1e-3))
+                aux["voltage"] = align(t, on_boot(rows), battery_voltage_v([d["voltage_battery"] for _, d in rows]))
             break
     rows = [(r, d) for r, d in msgs["GPS_RAW_INT"] if d["fix_type"] >= 3]
     if rows:
         tb = on_boot(rows)
-        aux["lat"] = align(t, tb, np.array([d["lat"] for _, d in rows]) * 1e-7)
-        aux["lon"] = align(t, tb, np.array([d["lon"] for _, d in rows]) * 1e-7)
-        aux["alt"] = align(t, tb, np.array([d["alt"] for _, d in rows]) * 1e-3)
+        pos = gps_position(*(np.array([d[f] for _, d in rows]) for f in ("lat", "lon", "alt")))
+        for c, v in zip(("lat", "lon", "alt"), pos):
+            aux[c] = align(t, tb, v)
     return aux
 
 
@@ -187,7 +208,7 @@ def read_tlog(path, instance=None, topic=None):
             raise FlightLogError(f"{path}: no instance {k}; instances: "
                                  f"{', '.join(f'{i}={n}' for i, n in enumerate(kinds))}")
     kind = kinds[k]
-    t, recv, mag_mg, aux = _stream(msgs, kind)
+    t, recv, mag_mg, aux = imu_arrays(kind, msgs[kind])
     params = _params(msgs)
     raw, note, applied = _undo(kind, msgs, params, mag_mg)
     offset = float(np.nanmedian(t - recv)) if len(t) else 0.0
@@ -202,7 +223,7 @@ def read_tlog(path, instance=None, topic=None):
     for name in sorted(params):
         if name.startswith("COMPASS_"):
             meta[f"param.{name}"] = repr(params[name])
-    return build_recording(path, t, raw * 0.1, aux, meta, bad)
+    return build_recording(path, t, raw * MG_TO_UT, aux, meta, bad)
 
 
 def inspect_tlog(path) -> dict:
@@ -210,7 +231,7 @@ def inspect_tlog(path) -> dict:
     params = _params(msgs)
     out = []
     for k, kind in enumerate(_streams(msgs)):
-        t, recv, mag_mg, aux = _stream(msgs, kind)
+        t, recv, mag_mg, aux = imu_arrays(kind, msgs[kind])
         _, note, applied = _undo(kind, msgs, params, mag_mg)
         out.append({"id": k, "topic": kind, "samples": int(len(t)), "rate_hz": rate_of(t),
                     "duration_s": float(t[-1] - t[0]) if len(t) else 0.0,
