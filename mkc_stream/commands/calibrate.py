@@ -5,6 +5,7 @@ import sys
 import time
 
 from .calreport import calibration_lines, status_line
+from .flightcal import add_attitude_options, attitude_calibrate, wants_attitude
 from .common import (EXIT_OK, EXIT_REJECTED, Outputs, Progress, add_json_option, add_quiet_option, add_window_options,
                      check_plot_extra, compiled_calibrator, load_recording, write_json)
 
@@ -26,6 +27,7 @@ def register(subparsers):
     c.add_argument("--params", metavar="TARGET:PATH", type=params_dest, action="append", default=[],
                    help="also write the accepted calibration as parameters: ardupilot:FILE.param, "
                         "px4:FILE.params, ros:FILE.yaml or c:FILE.h (docs/params.md); repeatable")
+    add_attitude_options(c)
     c.set_defaults(func=cmd_calibrate)
 
     m = subparsers.add_parser("methods", help="list the calibration methods")
@@ -65,6 +67,19 @@ def cmd_calibrate(args) -> int:
     unit = rec.mag_unit
     counts = rec.counts()
     outputs = Outputs()
+    if not args.stream and wants_attitude(args, rec):
+        obj, accepted, lines = attitude_calibrate(args, rec, unit, counts)
+        if not args.quiet:
+            out = sys.stderr if args.json == "-" else sys.stdout
+            print(f"mkc-stream calibrate --attitude: {args.recording}", file=out)
+            print(f"  read          : {counts['samples']} samples, {counts['bad_frames']} bad rows skipped", file=out)
+            for line in lines:
+                print(line, file=out)
+        if args.json:
+            obj["units"] = {"mag": unit}
+            obj["recording"] = str(args.recording)
+            outputs.attempt(args.json, write_json, obj, args.json)
+        return outputs.done(EXIT_OK if accepted else EXIT_REJECTED)
     if args.stream:
         obj, acc = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
         _write_params(args, outputs, acc, unit)

@@ -1,0 +1,98 @@
+"""`calibrate --attitude`: the attitude-aided flight calibration (mkc_stream/flight) on the command line.
+
+Chosen by default when the recording has an attitude (qw, qx, qy, qz) and a position (lat, lon) or
+--lat/--lon is given, since a flight rarely covers enough of the sphere for the ellipsoid fit; the
+ellipsoid fit with --no-attitude. Its result is the `calibrate` object of
+docs/spec/machine-output.md with `compensation` and `earth_field`.
+"""
+from __future__ import annotations
+
+import math
+
+from .calreport import status_line
+from .common import fmt_vec
+
+QUAT = ("qw", "qx", "qy", "qz")
+#: the fitted gain (sensor uT per model uT) must lie within this fraction of 1 for a log in uT
+FIELD_TOLERANCE = 0.15
+
+
+def add_attitude_options(p):
+    g = p.add_argument_group("attitude-aided calibration (flight and robot logs)")
+    g.add_argument("--attitude", dest="attitude", action="store_true", default=None,
+                   help="fit the vector model against the Earth field with the log's attitude (default when the "
+                        "recording has an attitude and a position or --lat/--lon)")
+    g.add_argument("--no-attitude", dest="attitude", action="store_false", help="the ellipsoid fit, even for a flight")
+    g.add_argument("--lat", type=float, help="latitude (deg) for the Earth-field model when the log has no GPS")
+    g.add_argument("--lon", type=float, help="longitude (deg)")
+    g.add_argument("--alt", type=float, default=0.0, help="altitude above the WGS84 ellipsoid (m), default 0")
+    g.add_argument("--date", help="date for the Earth-field model (YYYY-MM-DD or a decimal year), default the log's")
+    g.add_argument("--yaw-only", action="store_true",
+                   help="ground robots: hard iron and horizontal soft iron from yaw alone, vertical terms held")
+
+
+def wants_attitude(args, rec) -> bool:
+    if args.attitude is not None:
+        return args.attitude
+    has_q = all(c in rec.aux for c in QUAT)
+    has_pos = (args.lat is not None and args.lon is not None) or ("lat" in rec.aux and "lon" in rec.aux)
+    return has_q and has_pos
+
+
+def attitude_calibrate(args, rec, unit, counts):
+    """(json object, accepted, report lines) of the attitude-aided fit of `rec`."""
+    from .._validation import MKCInputError
+    from ..calib.result import Rejection, no_calibration_json
+    from ..flight import fit_flight
+
+    if (args.lat is None) != (args.lon is None):
+        from .common import UsageError
+
+        raise UsageError("--lat and --lon go together")
+    try:
+        fc = fit_flight(rec, lat=args.lat, lon=args.lon, alt=args.alt, date=args.date, yaw_only=args.yaw_only)
+    except (MKCInputError, ValueError, ImportError) as exc:
+        rejection = Rejection("not_observable" if isinstance(exc, MKCInputError) else "no_calibration", str(exc))
+        return no_calibration_json(rejection, counts, method="mkc-em-attitude"), False, [status_line(rejection)]
+    rejection = None
+    if unit == "uT" and math.isfinite(fc.scale) and abs(fc.scale - 1.0) > FIELD_TOLERANCE:
+        rejection = Rejection("rejected", f"fitted field {fc.scale:.3f} x the Earth-field model (more than "
+                                          f"{FIELD_TOLERANCE:.0%} from 1): wrong unit, position or date, or a "
+                                          "disturbance that does not move with the vehicle",
+                              ("field_model",), {"scale": fc.scale})
+    obj = fc.to_json()
+    obj.update({"quality": {"residual_rms": None, "coverage": None, "outlier_fraction": None, "condition": None},
+                "status": "accepted" if rejection is None else "rejected",
+                "reason": None if rejection is None else rejection.text, "counts": counts,
+                "method": "mkc-em-attitude"})
+    if rejection is not None:
+        obj["rejection"] = rejection.to_json()
+    return obj, rejection is None, report_lines(fc, unit, rejection)
+
+
+def report_lines(fc, unit, rejection) -> list:
+    S = fc.soft_iron
+    lines = ["  method        : mkc-em-attitude (vector model against the Earth field, the log's attitude)",
+             f"  hard iron b   : {fmt_vec(fc.hard_iron, unit)}",
+             f"  soft iron S   : {fmt_vec(S[0], '')}", f"                  {fmt_vec(S[1], '')}",
+             f"                  {fmt_vec(S[2], '')}   (m_cal = S (m_raw - b), det S = 1)",
+             f"  field F       : {fc.field:.5g} {unit}"]
+    if fc.earth is not None:
+        e = fc.earth
+        lines.append(f"  Earth field   : {e.model}: {e.intensity_uT:.2f} uT, inclination {e.inclination_deg:.2f} deg, "
+                     f"declination {e.declination_deg:.2f} deg; fitted gain {fc.scale:.4f} {unit} per uT")
+    if fc.current is not None:
+        ci = "" if fc.current_ci is None else "  95%: " + ", ".join(f"[{a:.3g}, {b:.3g}]" for a, b in fc.current_ci)
+        lines.append(f"  current       : {fmt_vec(fc.current, unit + '/A')}{ci}")
+    if fc.throttle is not None:
+        lines.append(f"  throttle      : {fmt_vec(fc.throttle, unit)} at full throttle")
+    if fc.delay_s is not None:
+        lines.append(f"  delay         : {fc.delay_s * 1e3:.1f} ms (power signal to magnetometer)")
+    lines.append(f"  misalignment  : {fmt_vec(fc.misalignment_deg, 'deg')} (rotation vector, sensor to attitude frame)")
+    lines.append(f"  samples       : {fc.samples} used, {fc.skipped} without attitude or power left out")
+    if fc.held:
+        lines.append(f"  held          : {', '.join(fc.held)} (not observable in this log: kept at their prior)")
+    for note in fc.notes:
+        lines.append(f"  note          : {note}")
+    lines.append(status_line(rejection))
+    return lines
