@@ -75,3 +75,16 @@ def test_the_report_names_what_was_held_and_the_earth_field(flight_csv, capsys):
     code, out, _ = run(["calibrate", str(path)], capsys)
     assert code == 0
     assert "Earth field   : WMM2025" in out and "current       :" in out and "status        : ACCEPTED" in out
+
+
+def test_a_flight_calibration_goes_to_the_autopilot_with_its_current_compensation(flight_csv, tmp_path, capsys):
+    from mkc_stream.params import read_params
+
+    path, truth = flight_csv
+    param = tmp_path / "compass.param"
+    code, out, _ = run(["calibrate", str(path), "--json", "-", "--quiet", "--params", f"ardupilot:{param}"], capsys)
+    assert code == 0
+    compass = read_params("ardupilot", param)[0]
+    text = param.read_text()
+    assert "COMPASS_MOTCT,2" in text                      # compensation against current
+    assert compass is not None and json.loads(out)["compensation"]["current"] is not None

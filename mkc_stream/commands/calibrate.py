@@ -68,18 +68,19 @@ def cmd_calibrate(args) -> int:
     counts = rec.counts()
     outputs = Outputs()
     if not args.stream and wants_attitude(args, rec):
-        obj, accepted, lines = attitude_calibrate(args, rec, unit, counts)
+        obj, fc, lines = attitude_calibrate(args, rec, unit, counts)
         if not args.quiet:
             out = sys.stderr if args.json == "-" else sys.stdout
             print(f"mkc-stream calibrate --attitude: {args.recording}", file=out)
             print(f"  read          : {counts['samples']} samples, {counts['bad_frames']} bad rows skipped", file=out)
             for line in lines:
                 print(line, file=out)
+        _write_params(args, outputs, fc, unit)
         if args.json:
             obj["units"] = {"mag": unit}
             obj["recording"] = str(args.recording)
             outputs.attempt(args.json, write_json, obj, args.json)
-        return outputs.done(EXIT_OK if accepted else EXIT_REJECTED)
+        return outputs.done(EXIT_OK if fc is not None else EXIT_REJECTED)
     if args.stream:
         obj, acc = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
         _write_params(args, outputs, acc, unit)
@@ -122,8 +123,10 @@ def _write_params(args, outputs, cal, unit):
         return
     from ..params import CalibrationValues, write_params
 
-    try:
-        values = CalibrationValues(cal.hard_iron, cal.soft_iron, cal.field, unit=unit)
+    try:                                # a flight calibration also carries its power compensation
+        values = CalibrationValues(cal.hard_iron, cal.soft_iron, cal.field, unit=unit,
+                                   current_coeff=getattr(cal, "current", None),
+                                   throttle_coeff=getattr(cal, "throttle", None))
     except ValueError as exc:           # counts: the targets need a physical unit
         outputs.failed.append(f"no parameter file written: {exc}")
         return

@@ -40,7 +40,7 @@ def wants_attitude(args, rec) -> bool:
 
 
 def attitude_calibrate(args, rec, unit, counts):
-    """(json object, accepted, report lines) of the attitude-aided fit of `rec`."""
+    """(json object, the FlightCalibration when accepted else None, report lines) of the attitude-aided fit."""
     from .._validation import MKCInputError
     from ..calib.result import Rejection, no_calibration_json
     from ..flight import fit_flight
@@ -53,7 +53,7 @@ def attitude_calibrate(args, rec, unit, counts):
         fc = fit_flight(rec, lat=args.lat, lon=args.lon, alt=args.alt, date=args.date, yaw_only=args.yaw_only)
     except (MKCInputError, ValueError, ImportError) as exc:
         rejection = Rejection("not_observable" if isinstance(exc, MKCInputError) else "no_calibration", str(exc))
-        return no_calibration_json(rejection, counts, method="mkc-em-attitude"), False, [status_line(rejection)]
+        return no_calibration_json(rejection, counts, method="mkc-em-attitude"), None, [status_line(rejection)]
     rejection = None
     if unit == "uT" and math.isfinite(fc.scale) and abs(fc.scale - 1.0) > FIELD_TOLERANCE:
         rejection = Rejection("rejected", f"fitted field {fc.scale:.3f} x the Earth-field model (more than "
@@ -67,7 +67,7 @@ def attitude_calibrate(args, rec, unit, counts):
                 "method": "mkc-em-attitude"})
     if rejection is not None:
         obj["rejection"] = rejection.to_json()
-    return obj, rejection is None, report_lines(fc, unit, rejection)
+    return obj, (fc if rejection is None else None), report_lines(fc, unit, rejection)
 
 
 def report_lines(fc, unit, rejection) -> list:
