@@ -46,8 +46,39 @@ def _open(path):
     try:
         reader.open()
     except Exception as exc:  # noqa: BLE001 - rosbags raises format-specific errors
-        raise FlightLogError(f"cannot read the bag {path}: {type(exc).__name__}: {exc}") from None
+        salvage = _salvage(path)
+        if salvage is None:
+            raise FlightLogError(f"cannot read the bag {path}: {type(exc).__name__}: {exc}") from None
+        return salvage
     return reader
+
+
+def _salvage(path):
+    """The messages of a cut MCAP bag before the damage (mcap_salvage.py), or None when there are none."""
+    from .mcap_salvage import McapSalvageReader
+
+    bag = bag_path(path)
+    files = sorted(bag.glob("*.mcap")) if bag.is_dir() else ([bag] if bag.suffix.lower() == ".mcap" else [])
+    if len(files) != 1:
+        return None
+    try:
+        reader = McapSalvageReader(files[0])
+    except (OSError, ValueError):
+        return None
+    if not reader.connections:
+        return None
+    # rosbags refused the file although every record up to the data end reads: the summary is cut
+    reader.summary_only = not reader.stopped
+    return reader
+
+
+def _truncation(reader, n, damage):
+    """A salvaged reader's cut, counted once where the samples end."""
+    if getattr(reader, "summary_only", False):
+        damage.append((n, "truncated: the bag's summary section after its data is cut or damaged; every message is kept"))
+    elif getattr(reader, "stopped", ""):
+        lost = f", {reader.lost_chunks} compressed chunk(s) lost" if reader.lost_chunks else ""
+        damage.append((n, f"truncated: the bag ends in a {reader.stopped}{lost}; the messages before it are kept"))
 
 
 def _stamp(msg, bag_ns):
@@ -183,6 +214,7 @@ def read_rosbag(path, instance=None, topic=None):
         damage: list = []
         t, mag, unit, unit_note = _stream(reader, conns, damage)
         aux = _aux(reader, t, damage)
+        _truncation(reader, len(t), damage)
         ros2 = bag_path(path).is_dir()
         meta = {"format": "ROS 2 bag" if ros2 else "ROS 1 bag", "source": str(path), "units.mag": unit,
                 "mag.topic": name, "mag.msgtype": conns[0].msgtype, "mag.unit_in_log": unit_note,
