@@ -35,8 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import (CalibrationValues, ParamsFileError, as_list, check_instances, float32_relative_step,
-                    fmt, parse_number, power_signal, raw_array)
+from .model import (CalibrationValues, ParamsFileError, as_list, check_instances, compensation_type,
+                    float32_relative_step, fmt, parse_number, power_signal, raw_array, read_text)
 
 TARGET = "ardupilot"
 #: the unit of the raw readings ArduPilot corrects and of its output
@@ -85,9 +85,7 @@ def convert(calibration) -> tuple[list[ArduPilotCompass], list[str]]:
     cals = as_list(calibration)
     check_instances(cals, MAX_INSTANCES, "ArduPilot")
     note = []
-    any_current = any(c.current_coeff is not None for c in cals)
-    any_throttle = any(c.throttle_coeff is not None for c in cals)
-    motct = 2 if any_current else 1 if any_throttle else 0
+    motct = compensation_type(cals)
     out = []
     for c in cals:
         u = c.tesla_per_unit * MG_PER_TESLA
@@ -151,10 +149,7 @@ def write(calibration, path) -> list[str]:
 def read_values(path) -> dict:
     """NAME -> value of a .param file (NAME,VALUE or NAME VALUE per line, # comments); bad lines raise."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParamsFileError(f"{path}: cannot read ({e})") from None
+    text = read_text(path)
     values = {}
     for no, line in enumerate(text.splitlines(), 1):
         where = f"{path}:{no}"

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import CalibrationValues, ParamsFileError, as_list, fmt, power_signal, raw_array
+from .model import CalibrationValues, ParamsFileError, as_list, fmt, power_signal, raw_array, read_text
 
 TARGET = "c"
 GUARD = "MKC_MAG_CALIBRATION_H"
@@ -82,10 +82,7 @@ def write(calibration, path) -> list[str]:
 
 def read(path) -> list[HeaderCalibration]:
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParamsFileError(f"{path}: cannot read ({e})") from None
+    text = read_text(path)
     found: dict = {}
     for m in _ARRAY.finditer(text):
         k, what, dims, body = int(m.group(2)), m.group(3), m.group(4), m.group(5)

@@ -190,6 +190,25 @@ def float32_relative_step() -> float:
     return float(np.finfo(np.float32).eps) / 2
 
 
+def read_text(path) -> str:
+    """A parameter file's text; ParamsFileError when it cannot be read as UTF-8."""
+    import pathlib
+
+    path = pathlib.Path(path)
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ParamsFileError(f"{path}: cannot read ({e})") from None
+
+
+def compensation_type(cals) -> int:
+    """The autopilots' compensation selector: 2 current, 1 throttle, 0 none. One signal serves every
+    compass (ArduPilot COMPASS_MOTCT, PX4 CAL_MAG_COMP_TYP), current first when any has it."""
+    if any(c.current_coeff is not None for c in cals):
+        return 2
+    return 1 if any(c.throttle_coeff is not None for c in cals) else 0
+
+
 def check_instances(cals, limit: int, target: str) -> None:
     bad = [c.instance for c in cals if c.instance >= limit]
     if bad:

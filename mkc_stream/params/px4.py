@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import (CalibrationValues, ParamsFileError, as_list, check_instances, float32_relative_step,
-                    fmt, parse_number, power_signal, raw_array)
+from .model import (CalibrationValues, ParamsFileError, as_list, check_instances, compensation_type,
+                    float32_relative_step, fmt, parse_number, power_signal, raw_array, read_text)
 
 TARGET = "px4"
 RAW_UNIT = "G"
@@ -74,9 +74,7 @@ def convert(calibration) -> tuple[list[PX4Mag], list[str]]:
     cals = as_list(calibration)
     check_instances(cals, MAX_INSTANCES, "PX4")
     note = []
-    any_current = any(c.current_coeff is not None for c in cals)
-    any_throttle = any(c.throttle_coeff is not None for c in cals)
-    comp_type = 2 if any_current else 1 if any_throttle else 0
+    comp_type = compensation_type(cals)
     out = []
     for c in cals:
         u = c.tesla_per_unit * GAUSS_PER_TESLA
@@ -150,10 +148,7 @@ def write(calibration, path, vehicle_id: int = 1, component_id: int = 1) -> list
 def read_values(path) -> dict:
     """NAME -> value of a QGroundControl .params file; malformed rows raise ParamsFileError."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParamsFileError(f"{path}: cannot read ({e})") from None
+    text = read_text(path)
     values = {}
     for no, line in enumerate(text.splitlines(), 1):
         where = f"{path}:{no}"

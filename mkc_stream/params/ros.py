@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .model import (CalibrationValues, ParamsFileError, as_list, fmt, max_direction_change_deg, parse_number,
-                    raw_array)
+                    raw_array, read_text)
 
 TARGET = "ros"
 RAW_UNIT = "T"
@@ -80,10 +80,7 @@ def read_values(path) -> dict:
     """key -> number or list of the flat ROS 2 parameter YAML this module writes (a strict subset of YAML:
     ``key: number`` and ``key: [numbers]``, nesting by indentation, ``#`` comments)."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise ParamsFileError(f"{path}: cannot read ({e})") from None
+    text = read_text(path)
     values = {}
     for no, line in enumerate(text.splitlines(), 1):
         where = f"{path}:{no}"
