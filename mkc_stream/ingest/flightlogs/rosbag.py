@@ -54,15 +54,21 @@ def _open(path):
 
 
 def _salvage(path):
-    """The messages of a cut MCAP bag before the damage (mcap_salvage.py), or None when there are none."""
+    """The messages of a cut MCAP or ROS 1 bag before the damage (mcap_salvage.py, ros1_salvage.py), or
+    None when there are none."""
     from .mcap_salvage import McapSalvageReader
+    from .ros1_salvage import Ros1SalvageReader
 
     bag = bag_path(path)
-    files = sorted(bag.glob("*.mcap")) if bag.is_dir() else ([bag] if bag.suffix.lower() == ".mcap" else [])
+    if bag.is_file() and bag.suffix.lower() == ".bag":
+        files, Reader = [bag], Ros1SalvageReader
+    else:
+        files = sorted(bag.glob("*.mcap")) if bag.is_dir() else ([bag] if bag.suffix.lower() == ".mcap" else [])
+        Reader = McapSalvageReader
     if len(files) != 1:
         return None
     try:
-        reader = McapSalvageReader(files[0])
+        reader = Reader(files[0])
     except (OSError, ValueError):
         return None
     if not reader.connections:
