@@ -356,7 +356,7 @@ def test_attitude_and_undone_offsets_agree_on_the_field_in_ned():
 
 
 @pytest.mark.parametrize("log,module,cuts", [(ULOG_V19, "pyulog", 10), (ULOG_SMALL, "pyulog", 10),
-                                             (DATAFLASH, "pymavlink", 4)])
+                                             (DATAFLASH, "pymavlink", 10), (TLOG, "pymavlink", 10)])
 def test_random_cuts_keep_every_sample_before_the_cut(tmp_path, log, module, cuts):
     need(module)
     whole = read_flight_log(log)

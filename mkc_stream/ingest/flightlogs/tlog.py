@@ -17,6 +17,8 @@ Damage: every message pymavlink cannot decode (bad CRC, cut) is counted.
 """
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 
 from ._common import (FlightLogError, align, align_quaternion, build_recording, captured_output, missing_library,
@@ -31,6 +33,10 @@ MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 G0 = 9.80665
 #: milligauss -> uT
 MG_TO_UT = 0.1
+
+
+#: the longest MAVLink 2 frame: 10 header + 255 payload + 2 checksum + 13 signature bytes
+MAX_FRAME = 280
 
 
 def _collect(path):
@@ -48,6 +54,7 @@ def _collect(path):
             raise FlightLogError(f"cannot read the telemetry log {path}: {type(exc).__name__}: {exc}") from None
         try:
             n = 0
+            whole = 0              # bytes of the complete records read: 8-byte time stamp + frame each
             while True:
                 try:
                     m = conn.recv_msg()
@@ -58,6 +65,8 @@ def _collect(path):
                     break
                 n += 1
                 kind = m.get_type()
+                if kind != "BAD_DATA":
+                    whole += 8 + len(m.get_msgbuf())
                 if kind == "BAD_DATA":
                     bad.append((n, f"corrupt: a MAVLink message that does not decode "
                                    f"({str(getattr(m, 'reason', ''))[:60]})"))
@@ -65,6 +74,10 @@ def _collect(path):
                     msgs[kind].append((getattr(m, "_timestamp", np.nan), m.to_dict()))
         finally:
             conn.close()
+    # pymavlink passes over a record cut by the end of the file without a word
+    tail = pathlib.Path(path).stat().st_size - whole
+    if not bad and 0 < tail < 8 + MAX_FRAME:
+        bad.append((n, f"truncated: the log ends inside a record ({tail} bytes after the last whole one)"))
     bad += [(0, f"damage: the MAVLink reader says {line}") for line in said_lines(said.getvalue())]
     return msgs, bad
 
