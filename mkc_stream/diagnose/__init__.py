@@ -10,7 +10,10 @@ slow effect the omnibus index cannot see; :mod:`.matched`; the latency's test al
 magnetometer's timing against the gyroscope, :mod:`.gyro_timing`), and attributes the gap to effects
 of the library on held-out time blocks (:mod:`.attribution`), and calls an explanation complete
 only if the residual no longer follows any recorded aux signal (:mod:`.completeness`; else
-"partially explained", naming the signal). ``Diagnosis.to_json()`` is the
+"partially explained", naming the signal). When the calibrator would not accept the baseline's
+calibration, the verdict is "baseline_rejected", with the calibrator's reason, and only what does
+not rest on the calibration is tested (:mod:`.scope`; its verdict is ``info.scope``'s
+``verdict_on_testable``). ``Diagnosis.to_json()`` is the
 object of docs/spec/machine-output.md; :mod:`.report` writes the human report and plots.
 """
 from __future__ import annotations
@@ -74,9 +77,13 @@ class Diagnosis:
 
 def _where(eng, ev, n=15):
     z = np.nan_to_num(ev.z)
+    off = np.array([eng.gi.names[k] in eng.gi.off for k in eng.gi.idx], dtype=bool)
+    z[off] = 0.0                # statistics the recording cannot test are no gap
     order = np.argsort(-np.abs(z))[:n]
     out = []
     for i in order:
+        if off[i]:
+            continue
         if abs(z[i]) < 3.0 and out:
             break
         fam, (channel, label) = eng.labels[i]
@@ -94,8 +101,8 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     """
     from ..sim.effects import EFFECTS
     from . import gap
-    from .attribution import Attribution, verdict
-    from .baseline import fit_baseline
+    from .attribution import Attribution, effect_testable, verdict
+    from .baseline import INCLINATION_CONVENTION, fit_baseline, inclination_deg
     from .completeness import aux_left
     from .engine import Candidate, Engine
     from .frame import prepare
@@ -119,8 +126,11 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     frame = prepare(recording, cfg["max_samples"])
     base = fit_baseline(frame)
     eng = Engine(frame, base, n_replicas=cfg["replicas"], seed=seed)
+    scope = base.scope
     log(f"baseline: F {base.fit.state.F:.4g} {frame.unit}, noise {base.sigma[0]:.3g} {frame.unit}, "
         f"{frame.n} samples{'' if frame.decimation == 1 else f' (decimated by {frame.decimation})'}")
+    if not scope.accepted:
+        log(f"the calibrator rejects the baseline calibration ({scope.reason}): testing only {scope.tested()}")
     ev0 = eng.evaluate(Candidate(), keep_raw=True)
     thr0 = gap.threshold(eng.calibrate(ev0))
     by_gap = bool(ev0.G > thr0)
@@ -134,7 +144,7 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     if gyro is not None and gyro["testable"]:
         log(f"timing against the gyroscope: magnetometer late by {gyro['delay_ms']:.2f} "
             f"+- {gyro['se_ms']:.2f} ms (t {gyro['t']:.1f})")
-    mt = MatchedTests(eng, ev0, mean_effects([n for n in library if EFFECTS[n].testable(base.evidence)[0]]),
+    mt = MatchedTests(eng, ev0, mean_effects([n for n in library if effect_testable(base, n)[0]]),
                       gyro=gyro)
     fired = mt.fired()
     by_matched = bool(fired) and not by_gap
@@ -151,11 +161,16 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
                    matched=(ms.get("shrink", 0.0), ms.get("closed", False)) if by_matched else None)
     # an explanation that leaves a dependence on a recorded aux signal is not complete (and a
     # partial one says which signal the rest follows)
-    left = aux_left(eng, final, selected) if v in ("explained", "partially_explained") else {}
+    left = aux_left(eng, final, selected) if scope.accepted and v in ("explained", "partially_explained") else {}
     still = sorted((a for a, r in left.items() if r["fired"]), key=lambda a: -left[a]["t"])
     if still:
         log(f"  the residual still follows {', '.join(still)} given {' + '.join(selected)}")
         v = "partially_explained"
+    # a baseline that is not a calibration raises no gap: what it could still test is reported
+    # beside the verdict
+    on_testable = v
+    if not scope.accepted:
+        v = "baseline_rejected"
     lat = results.get("latency")
     if mt.gyro is not None and lat is not None and lat.magnitude is not None:
         lat.magnitude = {**lat.magnitude, "gyro_delay_ms": gyro["delay_ms"], "gyro_delay_se_ms": gyro["se_ms"]}
@@ -167,8 +182,15 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
         "replicas": eng.R, "profile": profile, "seconds": time.perf_counter() - t_start,
         "baseline": {"hard_iron": base.fit.state.b.tolist(), "field": base.fit.state.F,
                      "noise": base.sigma[0], "noise_per_axis": base.sigma_axis.tolist(),
-                     "burst_fraction": base.bursts["fraction"], "dip_deg": float(np.degrees(base.fit.state.dip0))
-                     if frame.acc_unit is not None else None},
+                     "burst_fraction": base.bursts["fraction"],
+                     "inclination_deg": inclination_deg(base.fit.state.dip0) if frame.acc_unit is not None else None,
+                     "inclination_convention": INCLINATION_CONVENTION if frame.acc_unit is not None else None,
+                     "field_gravity_angle_deg": float(np.degrees(base.fit.state.dip0))
+                     if frame.acc_unit is not None else None,
+                     "calibration": {"accepted": scope.accepted, "reason": scope.reason or None,
+                                     "rejection": None if scope.rejection is None else scope.rejection.to_json(),
+                                     "quality": scope.quality}},
+        "scope": scope.to_json(eng.gi.off, on_testable),
         "family_gaps": {n: g for n, g in zip(eng.gi.names, fam)},
         "detected_by": ("gap index" if by_gap else "matched tests" if by_matched else None),
         "matched_tests": {"level": mt.level, "fired": fired, "tests": mt.summary(),

@@ -156,7 +156,7 @@ class Attribution:
         results = {}
         testable = []
         for name in self.library:
-            ok, why = EFFECTS[name].testable(eng.base.evidence)
+            ok, why = effect_testable(eng.base, name)
             results[name] = EffectResult(name, bool(ok), why, status="not testable" if not ok else "not selected")
             if ok:
                 testable.append(name)
@@ -497,6 +497,14 @@ def complexity(name, cand, env) -> float:
     return float(len(p))
 
 
+def effect_testable(base, name):
+    """(testable, reason) of an effect on this baseline: the registry's test of the recording's
+    excitation and aux signals, then what the baseline's calibration allows (:mod:`.scope`)."""
+    if base.scope is None:
+        return EFFECTS[name].testable(base.evidence)
+    return base.scope.effect_testable(EFFECTS[name], base.evidence)
+
+
 def verdict(detected, g0, g_final, selected, thr, first_shrink, matched=None):
     """no_gap; explained (the selected effects bring the held-out gap to its null level, or close
     at least EXPLAINED of it, and the first of them alone closes at least FIRST_ALONE);
@@ -521,4 +529,4 @@ def verdict(detected, g0, g_final, selected, thr, first_shrink, matched=None):
     return "unexplained", s
 
 
-__all__ = ["Attribution", "EffectResult", "verdict", "Candidate", "MeanForm"]
+__all__ = ["Attribution", "EffectResult", "effect_testable", "verdict", "Candidate", "MeanForm"]

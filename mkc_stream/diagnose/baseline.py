@@ -3,7 +3,15 @@
 Baseline = the MKC-EM calibration (b, S, F) refined by the same Gauss-Newton fit the effects
 use, the dip angle when there is an accelerometer, white noise per axis, disturbance bursts
 (their rate, length and size taken from where the robust fit down-weighted samples), and a
-regular clock (plus the timestamp quantum, if the timestamps lie on one).
+regular clock (plus the timestamp quantum, if the timestamps lie on one). Whether the
+calibrator would accept that calibration, and so what the recording can test, is its
+:class:`~.scope.Scope`.
+
+Dip and inclination: the model's dip parameter (``State.dip0``) is the angle between the
+calibrated field and the accelerometer's specific force, which points up at rest (about 150 deg
+where the field dips 60 deg below the horizontal). It is reported as the geomagnetic inclination,
+the angle of the field below the horizontal, positive downward (northern hemisphere):
+I = dip0 - 90 deg.
 
 Noise level: from third differences (m_{k+3} - 3 m_{k+2} + 3 m_{k+1} - m_k, variance 20 sigma^2
 for white noise), robustly (MAD). Third differences cancel the motion (to second order) and
@@ -22,6 +30,19 @@ from ..sim.sensor import SensorModel
 from ..sim.trajectory import Trajectory, moving_average
 from .frame import DiagnoseError, Frame
 from .model import ModelFit, State, channels, fit_model, n_channels
+from .scope import Scope, baseline_scope
+
+#: how the reported inclination is defined (stated beside it in the JSON)
+INCLINATION_CONVENTION = ("angle of the field below the horizontal, positive downward (northern hemisphere), deg; "
+                          "from the angle between the field and the accelerometer's specific force (up at rest) "
+                          "minus 90 deg")
+
+
+def inclination_deg(dip0: float) -> float:
+    """The geomagnetic inclination (deg, positive down) from the model's field-to-specific-force
+    angle dip0 (rad): I = dip0 - 90 deg (the specific force points up, so a field I below the
+    horizontal is 90 + I deg from it)."""
+    return float(np.degrees(dip0) - 90.0)
 
 
 @dataclass
@@ -37,6 +58,7 @@ class Baseline:
     evidence: Evidence
     bursts: dict
     ellipsoid: object
+    scope: Scope | None = None       # what the recording can test (the calibrator's verdict on the fit)
 
 
 def robust_sd(x) -> float:
@@ -225,4 +247,5 @@ def fit_baseline(frame: Frame) -> Baseline:
                   coverage=sphere_coverage(fit.v), rotation_rate=_rotation_rate(frame, fit.v),
                   timestamps_real=frame.timestamps_real)
     return Baseline(fit=fit, sigma=sigma, sigma_axis=sigma_axis, sensor=sensor, traj=traj,
-                    valid=valid, lattice=lattice, clock=clock, evidence=ev, bursts=bursts, ellipsoid=ell)
+                    valid=valid, lattice=lattice, clock=clock, evidence=ev, bursts=bursts, ellipsoid=ell,
+                    scope=baseline_scope(ell, frame.unit, ev.coverage))

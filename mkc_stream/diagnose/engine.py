@@ -278,7 +278,11 @@ class Engine:
         x, w, fl = pr.arrays()
         if self.labels is None:
             self.labels = list(zip(pr.family, pr.labels))
-            self.gi = gap.GapIndex(pr.family, [c for c, _ in pr.labels])
+            # families the recording cannot test (a rejected calibration, too little coverage)
+            # are left out of the index and its null (see .scope)
+            scope = self.base.scope
+            self.gi = gap.GapIndex(pr.family, [c for c, _ in pr.labels],
+                                   off=None if scope is None else scope.family_reason)
         reps = np.array([panel.evaluate(d, bs, mult).arrays()[0] for bs in rep_bs])
         ev = Evaluation(cand, fit, valid, real_bs, rep_bs, rep_e, rep_valid, mult, x, reps, w, fl,
                         gap.zscores(x, reps, fl), float("nan"), ref)

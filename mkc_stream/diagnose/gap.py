@@ -51,10 +51,18 @@ def zscores(x, reps, floors):
     return np.clip(z, -Z_CAP, Z_CAP)
 
 
+def family_key(family, channel):
+    """The gap index's family name of a statistic: "sphere/norm", "aux:temp/dip", "raw" ..."""
+    return family if family in ("kernel", "timing", "raw") else f"{family}/{channel}"
+
+
 class GapIndex:
-    def __init__(self, families, channels):
-        keys = [f"{f}/{c}" if f not in ("kernel", "timing", "raw") else f for f, c in zip(families, channels)]
+    def __init__(self, families, channels, off=None):
+        """off: family name -> the reason it is not testable (None when it is); such a family
+        scores NaN, so neither the index nor its null reads it."""
+        keys = [family_key(f, c) for f, c in zip(families, channels)]
         self.names = list(dict.fromkeys(keys))
+        self.off = {n: why for n in self.names if off is not None and (why := off(n))}
         self.idx = np.array([self.names.index(k) for k in keys])
         self.order = np.argsort(self.idx, kind="stable")
         self.bounds = np.searchsorted(self.idx[self.order], np.arange(len(self.names) + 1))
@@ -70,6 +78,8 @@ class GapIndex:
         out = np.full(len(self.names), np.nan)
         d, w, ok = d[self.order], w[self.order], ok[self.order]
         for f in range(len(self.names)):
+            if self.names[f] in self.off:
+                continue
             a, b = self.bounds[f], self.bounds[f + 1]
             sel = ok[a:b]
             if not sel.any():
@@ -105,7 +115,9 @@ class GapIndex:
     def calibrate(self, reps, w, floors):
         """Per-family and overall normalisation from the leave-one-out null; returns the null indices."""
         fs = self.loo_scores(reps, w, floors)
-        mean = np.nanmean(fs, axis=0)              # the mean, not the median: small families are skewed
+        cnt = np.isfinite(fs).sum(axis=0)          # (a family left out is NaN throughout)
+        # the mean, not the median: small families are skewed
+        mean = np.where(cnt > 0, np.nansum(fs, axis=0) / np.maximum(cnt, 1), np.nan)
         # at least 1 (z^2 units): a family that never moves in the replicas (all z ~ 0 by
         # construction) must not turn a real deviation into an astronomically large score
         self.norm = np.where(np.isfinite(mean), np.maximum(mean, 1.0), 1.0)

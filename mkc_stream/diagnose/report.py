@@ -16,6 +16,17 @@ HEADLINES = {
     "explained": "EXPLAINED: the gap is closed by {effects}.",
     "partially_explained": "PARTLY EXPLAINED: {effects} close part of the gap; the rest is not in the library.",
     "unexplained": "UNEXPLAINED: there is a gap, and no effect of the library closes it.",
+    "baseline_rejected": "BASELINE REJECTED: the calibrator would not accept this recording's calibration ({reason}), "
+                         "so no gap is read from it.\n  still tested  : {tested}: {on_testable}.",
+}
+
+#: what the restricted test found, in the rejected baseline's headline
+ON_TESTABLE = {
+    None: "nothing to compare",
+    "no_gap": "no gap there",
+    "explained": "a gap there, explained by {effects}",
+    "partially_explained": "a gap there, partly explained by {effects}",
+    "unexplained": "a gap there that no effect of the library closes",
 }
 
 
@@ -23,8 +34,20 @@ def _fmt(x, nd=3):
     return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}g}"
 
 
+def _grouped(pairs):
+    """[(reason, [names])] in first-seen order: one line per reason, not per name."""
+    out = {}
+    for name, why in pairs:
+        out.setdefault(why, []).append(name)
+    return list(out.items())
+
+
 def headline(diag) -> str:
-    return HEADLINES[diag.verdict].format(effects=" + ".join(diag.selected) or "-")
+    effects = " + ".join(diag.selected) or "-"
+    scope = diag.info.get("scope") or {}
+    on = ON_TESTABLE[scope.get("verdict_on_testable")].format(effects=effects)
+    return HEADLINES[diag.verdict].format(effects=effects, reason=scope.get("calibration_reason"),
+                                          tested=scope.get("tested"), on_testable=on)
 
 
 def text(diag, source="") -> str:
@@ -38,7 +61,13 @@ def text(diag, source="") -> str:
     b = info["baseline"]
     L.append(f"  baseline      : field {b['field']:.4g} {info['unit']}, white noise {b['noise']:.3g} {info['unit']}, "
              f"bursts {b['burst_fraction']:.1%}"
-             + (f", dip {b['dip_deg']:.1f} deg" if b.get("dip_deg") is not None else ""))
+             + (f", inclination {b['inclination_deg']:.1f} deg (below the horizontal, positive down)"
+                if b.get("inclination_deg") is not None else ""))
+    cal = b.get("calibration") or {}
+    if cal:
+        cov = (cal.get("quality") or {}).get("coverage")
+        L.append("  calibration   : " + (f"accepted by the calibrator (sphere coverage {cov:.0%})" if cal["accepted"]
+                                        else f"REJECTED by the calibrator: {cal['reason']}"))
     L.append(f"  gap index     : {_fmt(diag.gap_before)} (held-out; no-gap level 1, alarm above {_fmt(diag.threshold)})"
              + (f" -> {_fmt(diag.gap_after)} with {' + '.join(diag.selected)}" if diag.selected else ""))
     mt = info.get("matched_tests") or {}
@@ -52,7 +81,7 @@ def text(diag, source="") -> str:
         # the gap index is at its null level: shrinks are on the matched evidence
         L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the fired matched evidence removed "
                  "(the gap index alone is below its alarm)")
-    elif diag.verdict != "no_gap":
+    elif diag.verdict != "no_gap" and (info.get("scope") or {}).get("verdict_on_testable", "") != "no_gap":
         L.append(f"  shrink        : {_fmt(diag.shrink, 2)} of the excess held-out gap closed")
     left = info.get("aux_left") or {}
     if left.get("still_followed"):
@@ -80,11 +109,17 @@ def text(diag, source="") -> str:
                 mag += f" [{_fmt(lo)}, {_fmt(hi)}]"
         L.append(f"    {r.name:24s} {r.status:13s} {_fmt(r.shrink, 2):>7s} {ci:>15s}  {mag}")
     nt = [r for r in diag.effects if not r.testable]
-    if nt:
+    off = (info.get("scope") or {}).get("statistics_not_testable") or {}
+    if nt or off:
         L.append("")
         L.append("  not testable with this recording (not the same as absent):")
-        for r in nt:
-            L.append(f"    {r.name:24s} {r.reason}")
+        for why, names in _grouped([(r.name, r.reason) for r in nt]):
+            L.append(f"    {names[0]:24s} {why}" if len(names) == 1 else f"    {', '.join(names)}:")
+            if len(names) > 1:
+                L.append(f"      {why}")
+        for why, fams in _grouped(off.items()):
+            L.append(f"    statistics {', '.join(fams)}:")
+            L.append(f"      {why}")
     if diag.excluded:
         L.append(f"  left out of the library on request: {', '.join(diag.excluded)}")
     L.append(f"  ({info['replicas']} replicas, profile {info['profile']}, {info['seconds']:.1f} s)")
