@@ -5,7 +5,7 @@ import sys
 import time
 
 from .calreport import calibration_lines, status_line
-from .flightcal import add_attitude_options, attitude_calibrate, wants_attitude
+from .flightcal import add_attitude_options, all_instances, attitude_calibrate, wants_attitude
 from .common import (EXIT_OK, EXIT_REJECTED, Outputs, Progress, add_json_option, add_quiet_option, add_window_options,
                      check_plot_extra, compiled_calibrator, load_recording, write_json)
 
@@ -63,6 +63,13 @@ def cmd_calibrate(args) -> int:
     if not args.stream:
         make_estimator(args.method)          # unknown method -> usage error before any work
     check_plot_extra(args.plot)
+    if args.all_instances:
+        outputs = Outputs()
+        obj, ok = all_instances(args, args.recording, None if args.quiet else
+                                (sys.stderr if args.json == "-" else sys.stdout))
+        if args.json:
+            outputs.attempt(args.json, write_json, obj, args.json)
+        return outputs.done(EXIT_OK if ok else EXIT_REJECTED)
     rec = load_recording(args.recording)
     unit = rec.mag_unit
     counts = rec.counts()

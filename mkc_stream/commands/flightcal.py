@@ -29,6 +29,9 @@ def add_attitude_options(p):
     g.add_argument("--date", help="date for the Earth-field model (YYYY-MM-DD or a decimal year), default the log's")
     g.add_argument("--yaw-only", action="store_true",
                    help="ground robots: hard iron and horizontal soft iron from yaw alone, vertical terms held")
+    g.add_argument("--all-instances", action="store_true",
+                   help="calibrate every magnetometer of the log and compare them (heading, field vs the model); "
+                        "names the inconsistent one")
 
 
 def wants_attitude(args, rec) -> bool:
@@ -96,3 +99,44 @@ def report_lines(fc, unit, rejection) -> list:
         lines.append(f"  note          : {note}")
     lines.append(status_line(rejection))
     return lines
+
+
+def all_instances(args, path, out):
+    """(json object, exit ok?) of --all-instances: every compass of a flight log calibrated, then compared."""
+    from ..flight.compare import compare_compasses
+    from ..ingest.flightlogs import inspect_flight_log, is_flight_log, read_flight_log
+    from .common import UsageError
+
+    if not is_flight_log(path):
+        raise UsageError(f"--all-instances needs a flight log or bag with several magnetometers; {path} is not one")
+    try:
+        ids = [str(i["id"]) for i in inspect_flight_log(path)["instances"]]
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot read {path}: {exc}") from None
+    results, accepted, intensity = [], [], None
+    for cid in ids:
+        rec = read_flight_log(f"{path}#instance={cid}")
+        unit = rec.mag_unit
+        obj, fc, lines = attitude_calibrate(args, rec, unit, rec.counts())
+        obj["instance"] = cid
+        results.append(obj)
+        if out is not None:
+            print(f"mkc-stream calibrate --all-instances: {path} instance {cid}", file=out)
+            for line in lines:
+                print(line, file=out)
+        if fc is not None:
+            accepted.append((cid, rec, fc))
+            if fc.earth is not None:
+                intensity = fc.earth.intensity_uT
+    comparison = compare_compasses(accepted, intensity)
+    if out is not None:
+        print(f"compasses compared: {len(accepted)} of {len(ids)} calibrated", file=out)
+        for row in comparison["compasses"]:
+            vs = f" ({row['field_vs_model']:+.1%} vs the model)" if "field_vs_model" in row else ""
+            heads = ", ".join(f"{d:.2f} deg RMS from {j}" for j, d in row["heading_rms_deg"].items())
+            print(f"  instance {row['id']}: field {row['field_uT']:.2f} uT{vs}; heading {heads}", file=out)
+        if comparison.get("note"):
+            print(f"  note          : {comparison['note']}", file=out)
+        for bad in comparison["inconsistent"]:
+            print(f"  INCONSISTENT  : instance {bad['id']}: {bad['reason']}", file=out)
+    return {"instances": results, "comparison": comparison, "recording": str(path)}, len(accepted) == len(ids)
