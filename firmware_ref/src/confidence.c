@@ -17,7 +17,7 @@ static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration 
     int i;
     for (i = 0; i < 3; i++)
         m[i] = v0 * c->soft_iron[i][0] + v1 * c->soft_iron[i][1] + v2 * c->soft_iron[i][2];
-    return sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+    return MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
 }
 
 /* supports_switch: 1 when the window supports replacing `acc` by `trial`, i.e. gain > z se with
@@ -37,10 +37,10 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         w[k] = et[k];
     med = mkc__median(w, count);
     for (k = 0; k < count; k++)
-        w[k] = fabs(et[k] - med);
+        w[k] = MKC_FABS_R(et[k] - med);
     mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
     thr = RC(MKC_OUTLIER_K) * mad;
-#define IS_IN(k) (!(mad != RC(0.0) && fabs(et[(k)] - med) > thr) && isfinite(et[(k)]) && isfinite(ea[(k)]))
+#define IS_IN(k) (!(mad != RC(0.0) && MKC_FABS_R(et[(k)] - med) > thr) && isfinite(et[(k)]) && isfinite(ea[(k)]))
     for (k = 0; k < count; k++)
         if (IS_IN(k))
             w[n++] = ea[k] * ea[k] - et[k] * et[k];
@@ -79,13 +79,14 @@ mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real
     int k;
     if (!(r > RC(0.0)) || count <= 0)
         return RC(HUGE_VAL);
-#define DIST(k) (sqrt((g->raw[(k)][0] - c[0]) * (g->raw[(k)][0] - c[0]) + (g->raw[(k)][1] - c[1]) * (g->raw[(k)][1] - c[1]) \
-                      + (g->raw[(k)][2] - c[2]) * (g->raw[(k)][2] - c[2])) - r)
+#define DIST(k) (MKC_SQRT_R((g->raw[(k)][0] - c[0]) * (g->raw[(k)][0] - c[0]) \
+                            + (g->raw[(k)][1] - c[1]) * (g->raw[(k)][1] - c[1]) \
+                            + (g->raw[(k)][2] - c[2]) * (g->raw[(k)][2] - c[2])) - r)
     for (k = 0; k < count; k++)
         w[k] = DIST(k);
     med = mkc__median(w, count);
     for (k = 0; k < count; k++)
-        w[k] = fabs(DIST(k) - med);
+        w[k] = MKC_FABS_R(DIST(k) - med);
 #undef DIST
     return RC(MKC_MAD_SCALE) * mkc__median(w, count) / r;
 }

@@ -21,7 +21,7 @@ static void omh_terms(mkc_ereal q, mkc_ereal *omh, mkc_ereal *omh_qh, mkc_ereal 
         *h = EC(1.0) - o;
         return;
     }
-    *h = exp(-q);
+    *h = MKC_EXP_E(-q);
     *omh = EC(1.0) - *h;
     *omh_qh = *omh - q * *h;
 }
@@ -32,8 +32,8 @@ static void omh_terms(mkc_ereal q, mkc_ereal *omh, mkc_ereal *omh_qh, mkc_ereal 
 static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
                            mkc_ereal *g0, mkc_ereal *g1)
 {
-    mkc_ereal sigma = exp(ls);
-    mkc_ereal d = exp(ld);
+    mkc_ereal sigma = MKC_EXP_E(ls);
+    mkc_ereal d = MKC_EXP_E(ld);
     mkc_ereal s2 = sigma * sigma;
     mkc_ereal dZs, dZA, logZ, inv, F, dF_ds, dF_dd;
     mkc_ereal acc = EC(0.0), acc_s = EC(0.0), acc_d = EC(0.0);
@@ -111,12 +111,12 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         *F_out = EC(NAN);
         return MKC_BAD_INPUT;
     }
-    lo0 = log(sig_lo);
-    hi0 = log(sig_hi);
-    lo1 = log(d_lo);
-    hi1 = log(d_hi);
-    z0 = CLAMP(log(sigma0), lo0, hi0);
-    z1 = CLAMP(log(d0), lo1, hi1);
+    lo0 = MKC_LOG_E(sig_lo);
+    hi0 = MKC_LOG_E(sig_hi);
+    lo1 = MKC_LOG_E(d_lo);
+    hi1 = MKC_LOG_E(d_hi);
+    z0 = CLAMP(MKC_LOG_E(sigma0), lo0, hi0);
+    z1 = CLAMP(MKC_LOG_E(d0), lo1, hi1);
     F = objective(z0, z1, e2, n, a, pull, &g0, &g1);
     if (!FIN3(F, g0, g1)) {
         *sigma_out = sigma0;
@@ -143,11 +143,11 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         free1 = !((z1 <= lo1 && g1 > EC(0.0)) || (z1 >= hi1 && g1 < EC(0.0)));
         pg0 = free0 ? g0 : EC(0.0);
         pg1 = free1 ? g1 : EC(0.0);
-        if (mkc__max_e(fabs(pg0), fabs(pg1)) <= gtol) {
+        if (mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1)) <= gtol) {
             status = MKC_OK;
             break;
         }
-        if (it >= max_iter && mkc__max_e(fabs(pg0), fabs(pg1)) <= EC(MKC_FAR_GTOL))
+        if (it >= max_iter && mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1)) <= EC(MKC_FAR_GTOL))
             break;            /* the cap: near enough for a generalised EM step */
         it += 1;
         if (free0 && free1) {
@@ -164,7 +164,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
             p0 = EC(-0.5) * pg0;
             p1 = EC(-0.5) * pg1;
         }
-        pmax = mkc__max_e(fabs(p0), fabs(p1));
+        pmax = mkc__max_e(MKC_FABS_E(p0), MKC_FABS_E(p1));
         alpha = pmax <= EC(2.0) ? EC(1.0) : EC(2.0) / pmax;   /* at most a factor e^2 per step */
         alpha0 = alpha;
         for (ls = 0; ls < 40; ls++) {
@@ -184,7 +184,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
             /* Flat regions (sigma and d large, Section III-D): the full step was accepted and F fell
              * like its linear model, so the curvature is overestimated: keep doubling while F
              * falls, up to the e^2 cap. */
-            mkc_ereal pnorm = mkc__max_e(fabs(p0), fabs(p1));
+            mkc_ereal pnorm = mkc__max_e(MKC_FABS_E(p0), MKC_FABS_E(p1));
             while (EC(2.0) * alpha * pnorm <= EC(2.0)) {
                 mkc_ereal t0 = CLAMP(z0 + EC(2.0) * alpha * p0, lo0, hi0);
                 mkc_ereal t1 = CLAMP(z1 + EC(2.0) * alpha * p1, lo1, hi1);
@@ -202,7 +202,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         }
         if (!accepted) {
             /* no decrease possible at float resolution: at the minimum (or on a flat ridge) */
-            status = mkc__max_e(fabs(pg0), fabs(pg1)) <= EC(1e3) * gtol ? MKC_OK : MKC_NOT_CONVERGED;
+            status = mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1)) <= EC(1e3) * gtol ? MKC_OK : MKC_NOT_CONVERGED;
             break;
         }
         s0 = n0 - z0;
@@ -210,7 +210,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         y0 = gn0 - g0;
         y1 = gn1 - g1;
         sy = s0 * y0 + s1 * y1;
-        if (sy > EC(1e-12) * sqrt((s0 * s0 + s1 * s1) * (y0 * y0 + y1 * y1))) {
+        if (sy > EC(1e-12) * MKC_SQRT_E((s0 * s0 + s1 * s1) * (y0 * y0 + y1 * y1))) {
             /* BFGS inverse update H <- (I - r s y^T) H (I - r y s^T) + r s s^T */
             mkc_ereal r = EC(1.0) / sy;
             mkc_ereal hy0 = h00 * y0 + h01 * y1;
@@ -226,7 +226,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         F = Fn;
         g0 = gn0;
         g1 = gn1;
-        if (mkc__max_e(fabs(s0), fabs(s1)) <= EC(1e-12)) {
+        if (mkc__max_e(MKC_FABS_E(s0), MKC_FABS_E(s1)) <= EC(1e-12)) {
             status = MKC_OK;
             break;
         }
@@ -234,8 +234,8 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
     H[0] = h00;
     H[1] = h01;
     H[2] = h11;
-    *sigma_out = exp(z0);
-    *d_out = exp(z1);
+    *sigma_out = MKC_EXP_E(z0);
+    *d_out = MKC_EXP_E(z1);
     *F_out = F;
     *iters = it;
     return status;

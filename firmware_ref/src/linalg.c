@@ -18,7 +18,7 @@ int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, 
             *cond = AC(HUGE_VAL);
             return MKC_SINGULAR;
         }
-        D[i] = AC(1.0) / sqrt(aii);
+        D[i] = AC(1.0) / MKC_SQRT_A(aii);
     }
     for (j = 0; j < n; j++) {
         mkc_acc s = AC(1.0);                      /* (D A D)_jj = 1 exactly */
@@ -29,7 +29,7 @@ int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, 
             *cond = AC(HUGE_VAL);
             return MKC_SINGULAR;
         }
-        ljj = sqrt(s);
+        ljj = MKC_SQRT_A(s);
         inv = AC(1.0) / ljj;
         L[j][j] = inv;
         lmax = mkc__max_a(lmax, ljj);

@@ -364,7 +364,8 @@ static void checkpoint(mkc_mag_t *g)
  * value; a median of values near the overflow limit would put inf into c0) */
 static int finite3(mkc_real x, mkc_real y, mkc_real z)
 {
-    return fabs(x) <= MKC_MAX_ABS_INPUT && fabs(y) <= MKC_MAX_ABS_INPUT && fabs(z) <= MKC_MAX_ABS_INPUT;
+    return MKC_FABS_R(x) <= MKC_MAX_ABS_INPUT && MKC_FABS_R(y) <= MKC_MAX_ABS_INPUT
+           && MKC_FABS_R(z) <= MKC_MAX_ABS_INPUT;
 }
 
 /* One sample through the window (kernels/magwindow.py mag_learn_many's loop body), then the
@@ -382,7 +383,7 @@ static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
     mkc__ellipsoid_features(mx, my, mz, g->c0, g->s0, xk);
     /* bounded normalised coordinates keep every product of features finite (Python: any finite) */
     for (j = 6; j < 9; j++) {
-        if (!(fabs(xk[j]) <= MKC_MAX_ABS_NORMALISED)) {
+        if (!(MKC_FABS_R(xk[j]) <= MKC_MAX_ABS_NORMALISED)) {
             c->counters.rejected += 1;
             return MKC_REJECTED;
         }
@@ -422,7 +423,7 @@ static void first_normalisation(mkc_mag_t *g)
     }
     for (k = 0; k < n; k++) {
         mkc_real d0 = g->raw[k][0] - g->c0[0], d1 = g->raw[k][1] - g->c0[1], d2 = g->raw[k][2] - g->c0[2];
-        w[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2);
+        w[k] = MKC_SQRT_R(d0 * d0 + d1 * d1 + d2 * d2);
     }
     g->s0 = mkc__median(w, n);
     if (!(g->s0 != RC(0.0)))               /* "or 1.0" */

@@ -10,7 +10,7 @@
 /* Cell 0..71 of a direction (need not be unit length; 0 for the zero vector). */
 int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
 {
-    mkc_real r = sqrt(vx * vx + vy * vy + vz * vz);
+    mkc_real r = MKC_SQRT_R(vx * vx + vy * vy + vz * vz);
     mkc_real z, lon;
     int band, sector;
     if (!(r > RC(0.0)))
@@ -18,7 +18,7 @@ int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
     z = mkc__min_r(mkc__max_r(vz / r, RC(-1.0)), RC(1.0));
     band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS));
     band = band < MKC_N_BANDS - 1 ? band : MKC_N_BANDS - 1;
-    lon = atan2(vy, vx) + RC(MKC_PI);
+    lon = MKC_ATAN2_R(vy, vx) + RC(MKC_PI);
     sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
     sector = sector < MKC_N_SECTORS - 1 ? sector : MKC_N_SECTORS - 1;
     return band * MKC_N_SECTORS + sector;

@@ -3,13 +3,14 @@
  * Numerical convention: every routine mirrors its Python kernel statement by statement, with the
  * same operation order, so that the double build reproduces the Numba kernels to the last bit
  * where only IEEE arithmetic and libm are involved (compile with -ffp-contract=off, never
- * -ffast-math). <tgmath.h> picks exp/expf etc. from the argument type; literals are cast with
- * RC/AC/EC so that the float build stays in float (checked with -Wdouble-promotion).
+ * -ffast-math). Every libm call names the precision of its argument (mkc_math.h: MKC_EXP_E is exp
+ * or expf as mkc_ereal is double or float); literals are cast with RC/AC/EC so that the float build
+ * stays in float (checked with -Wdouble-promotion).
  */
 #ifndef MKC_INTERNAL_H
 #define MKC_INTERNAL_H
 
-#include <tgmath.h>
+#include "mkc_math.h"
 
 #include "mkc.h"
 #include "mkc_tables.h"

@@ -18,13 +18,13 @@ mkc_ereal mkc__cut_point(mkc_ereal sigma)
     mkc_ereal x = s2 + EC(MKC_LOG_TAU);          /* log(TAU exp(sigma^2)) */
     mkc_ereal L, h_c;
     if (x > EC(30.0))
-        L = x + log1p(exp(-x));
+        L = x + MKC_LOG1P_E(MKC_EXP_E(-x));
     else
-        L = log1p(exp(x));
+        L = MKC_LOG1P_E(MKC_EXP_E(x));
     h_c = L / s2;
     if (h_c >= EC(1.0))
         return EC(0.0);
-    return sigma * sqrt(EC(-2.0) * log(h_c));
+    return sigma * MKC_SQRT_E(EC(-2.0) * MKC_LOG_E(h_c));
 }
 
 /* (1 - h, h) with h = e^-q from at most one exp: omh = q - q^2/2 + q^3/6 - q^4/24 + q^5/120 for
@@ -37,7 +37,7 @@ static void omh_h(mkc_ereal q, mkc_ereal *omh, mkc_ereal *h)
         *h = EC(1.0) - o;
         return;
     }
-    *h = exp(-q);
+    *h = MKC_EXP_E(-q);
     *omh = EC(1.0) - *h;
 }
 
@@ -53,7 +53,7 @@ static mkc_ereal panel_width(mkc_ereal u, mkc_ereal sigma)
 mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_sigma, mkc_ereal *d_A)
 {
     mkc_ereal s2 = sigma * sigma;
-    mkc_ereal floor_ = exp(-s2);
+    mkc_ereal floor_ = MKC_EXP_E(-s2);
     mkc_ereal uc = mkc__min_e(A, mkc__cut_point(sigma));
     mkc_ereal Ig = EC(0.0), Ids = EC(0.0), u = EC(0.0);
     mkc_ereal Z, dZ_ds, fA, dZ_dA;
@@ -67,8 +67,8 @@ mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_si
             mkc_ereal q = x * x / (EC(2.0) * s2);
             mkc_ereal omh, h, f, g;
             omh_h(q, &omh, &h);
-            f = exp(-s2 * omh);                   /* f = exp(-sigma^2 (1 - h)) */
-            g = f * (-expm1(-s2 * h));            /* g = f - exp(-sigma^2), without cancellation */
+            f = MKC_EXP_E(-s2 * omh);                   /* f = exp(-sigma^2 (1 - h)) */
+            g = f * (-MKC_EXPM1_E(-s2 * h));            /* g = f - exp(-sigma^2), without cancellation */
             mkc_ereal wj = span * EC(mkc_gl_weights[j]);
             Ig += wj * g;
             Ids += wj * (EC(2.0) * sigma * (f * h - g) + f * h * x * x / sigma);
@@ -77,9 +77,9 @@ mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_si
     }
     Z = EC(2.0) * (A * floor_ + Ig);
     dZ_ds = EC(2.0) * (EC(-2.0) * sigma * A * floor_ + Ids);
-    fA = exp(-s2 * (-expm1(-A * A / (EC(2.0) * s2))));
+    fA = MKC_EXP_E(-s2 * (-MKC_EXPM1_E(-A * A / (EC(2.0) * s2))));
     dZ_dA = EC(2.0) * fA;
     *d_sigma = dZ_ds / Z;
     *d_A = dZ_dA / Z;
-    return log(Z);
+    return MKC_LOG_E(Z);
 }

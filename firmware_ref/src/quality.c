@@ -19,7 +19,7 @@ static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
         mkc_real d = x[k] - mean;
         work[k] = d * d;
     }
-    return sqrt(mkc__pairwise_sum(work, n) / (mkc_real)n);
+    return MKC_SQRT_R(mkc__pairwise_sum(work, n) / (mkc_real)n);
 }
 
 void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
@@ -36,7 +36,7 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
         int i;
         for (i = 0; i < 3; i++)
             m[i] = v0 * S[i][0] + v1 * S[i][1] + v2 * S[i][2];
-        nk = sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+        nk = MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
         nrm[k] = nk;
         r[k] = nk - F;
         if (nk > RC(0.0))
@@ -47,10 +47,10 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
         w[k] = r[k];
     med = mkc__median(w, count);
     for (k = 0; k < count; k++)
-        w[k] = fabs(r[k] - med);
+        w[k] = MKC_FABS_R(r[k] - med);
     mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
     thr = RC(MKC_OUTLIER_K) * mad;
-#define IS_OUT(k) (mad != RC(0.0) && fabs(r[(k)] - med) > thr)
+#define IS_OUT(k) (mad != RC(0.0) && MKC_FABS_R(r[(k)] - med) > thr)
     /* residual_rms: over the inliers */
     for (k = 0; k < count; k++) {
         if (IS_OUT(k)) {
@@ -60,10 +60,10 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
         }
     }
     /* (nin >= count / 2 always: at least half the residuals lie within one MAD of the median) */
-    q[MKC_Q_RESIDUAL_RMS] = nin ? sqrt(mkc__pairwise_sum(w, nin) / (mkc_real)nin) : RC(HUGE_VAL);
+    q[MKC_Q_RESIDUAL_RMS] = nin ? MKC_SQRT_R(mkc__pairwise_sum(w, nin) / (mkc_real)nin) : RC(HUGE_VAL);
     for (k = 0; k < count; k++)
         w[k] = r[k] * r[k];
-    q[MKC_Q_RESIDUAL_RMS_ALL] = sqrt(mkc__pairwise_sum(w, count) / (mkc_real)count);
+    q[MKC_Q_RESIDUAL_RMS_ALL] = MKC_SQRT_R(mkc__pairwise_sum(w, count) / (mkc_real)count);
     q[MKC_Q_NORM_SPREAD] = np_std(nrm, count, w) / F;
     /* the inliers' norms, compacted into r's storage (r is not needed afterwards: compact in
      * place from the front, the write index never passes the read index) */

@@ -19,7 +19,7 @@ typedef struct sel {
 
 static int selected(const mkc_mag_t *g, const sel *m, int k)
 {
-    return !m->use_mask || fabs(g->core.ebuf[k] - m->med) <= m->thr;
+    return !m->use_mask || MKC_FABS_R(g->core.ebuf[k] - m->med) <= m->thr;
 }
 
 /* Solve the symmetric positive definite 4x4 N x = r by Cholesky (double); 0 if not PD. */
@@ -88,7 +88,7 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
         d2 = g->raw[k][2] - c[2];
         g->work[p++] = d0 * d0 + d1 * d1 + d2 * d2;
     }
-    scale = sqrt(mkc__pairwise_sum(g->work, nsel) / (mkc_real)nsel);
+    scale = MKC_SQRT_R(mkc__pairwise_sum(g->work, nsel) / (mkc_real)nsel);
     if (scale == RC(0.0))
         scale = RC(1.0);
     /* columns [2 m', 1], target |m'|^2: normal equations (lower triangle, first pass), then two
@@ -131,7 +131,7 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
         return 0;
     for (j = 0; j < 3; j++)
         b_out[j] = c[j] + scale * bb[j];
-    *F_out = scale * sqrt(F2);
+    *F_out = scale * MKC_SQRT_R(F2);
     return 1;
 }
 
@@ -143,12 +143,12 @@ static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, m
     int k, n = 0;
     for (k = 0; k < count; k++) {
         mkc_real d0 = g->raw[k][0] - centre[0], d1 = g->raw[k][1] - centre[1], d2 = g->raw[k][2] - centre[2];
-        r[k] = sqrt(d0 * d0 + d1 * d1 + d2 * d2) - F;
+        r[k] = MKC_SQRT_R(d0 * d0 + d1 * d1 + d2 * d2) - F;
         tmp[k] = r[k];
     }
     med = mkc__median(tmp, count);
     for (k = 0; k < count; k++)
-        tmp[k] = fabs(r[k] - med);
+        tmp[k] = MKC_FABS_R(r[k] - med);
     mad = RC(1.4826) * mkc__median(tmp, count);
     s->use_mask = mad > RC(0.0);
     s->med = med;
@@ -194,7 +194,7 @@ mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real 
         hit[k] = 0;
     for (k = 0; k < count; k++) {
         mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2];
-        mkc_real nrm = sqrt(v0 * v0 + v1 * v1 + v2 * v2);
+        mkc_real nrm = MKC_SQRT_R(v0 * v0 + v1 * v1 + v2 * v2);
         if (nrm > RC(0.0))
             hit[mkc__unit_direction_cell(v0 / nrm, v1 / nrm, v2 / nrm)] = 1;
     }

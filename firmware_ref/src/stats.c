@@ -91,7 +91,7 @@ int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz)
 {
     mkc_real z = mkc__min_r(mkc__max_r(uz, RC(-1.0)), RC(1.0));
     int band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS));
-    mkc_real lon = atan2(uy, ux) + RC(MKC_PI);
+    mkc_real lon = MKC_ATAN2_R(uy, ux) + RC(MKC_PI);
     int sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
     band = band < MKC_N_BANDS - 1 ? band : MKC_N_BANDS - 1;
     sector = sector < MKC_N_SECTORS - 1 ? sector : MKC_N_SECTORS - 1;

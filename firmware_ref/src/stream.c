@@ -46,12 +46,12 @@ int mkc_stream_learn_one(mkc_stream_t *st, const mkc_real *x, const mkc_real *y,
     if (n < 1 || slot >= c->cfg.window || (slot >= 0 && slot > c->counters.count))
         return MKC_BAD_INPUT;
     for (i = 0; i < m; i++) {
-        if (!(fabs(y[i]) <= MKC_MAX_ABS_INPUT)) {      /* NaN, inf or huge */
+        if (!(MKC_FABS_R(y[i]) <= MKC_MAX_ABS_INPUT)) {      /* NaN, inf or huge */
             c->counters.rejected += 1;
             return MKC_REJECTED;
         }
         for (j = 0; j < n; j++) {
-            if (!(fabs(x[i * n + j]) <= MKC_MAX_ABS_INPUT)) {
+            if (!(MKC_FABS_R(x[i * n + j]) <= MKC_MAX_ABS_INPUT)) {
                 c->counters.rejected += 1;
                 return MKC_REJECTED;
             }

@@ -89,7 +89,7 @@ static mkc_real gauss_weight(mkc_real t)
         mkc_real o = t * (RC(1.0) - t * (RC(0.5) - t * (RC(1.0 / 6.0) - t * (RC(1.0 / 24.0) - t * (RC(1.0 / 120.0))))));
         return RC(1.0) - o;
     }
-    return exp(-t);
+    return MKC_EXP_R(-t);
 }
 
 /* A += c x x^T (lower triangle), b += c x y: one channel-row of eq. (15). */
@@ -249,8 +249,8 @@ static int refine_theta(mkc_core_t *c)
     }
     for (j = 0; j < n; j++) {
         c->xs[j] = s[j] * c->D[j];
-        step = mkc__max_a(step, fabs(c->xs[j]));
-        size = mkc__max_a(size, (mkc_acc)fabs(c->theta[j]));
+        step = mkc__max_a(step, MKC_FABS_A(c->xs[j]));
+        size = mkc__max_a(size, (mkc_acc)MKC_FABS_R(c->theta[j]));
     }
     if (!(step <= AC(MKC_REFINE_MAX_STEP) * size))   /* also catches NaN */
         return 0;
@@ -330,7 +330,7 @@ static int rebuild_with(mkc_core_t *c, int have_r)
             num += dj * dj;
             den += tj * tj;
         }
-        if (sqrt(num) <= (mkc_acc)c->cfg.fp_tol * mkc__max_a(sqrt(den), AC(MKC_TINY_ACC))) {
+        if (MKC_SQRT_A(num) <= (mkc_acc)c->cfg.fp_tol * mkc__max_a(MKC_SQRT_A(den), AC(MKC_TINY_ACC))) {
             status = MKC_OK;
             break;
         }
@@ -384,8 +384,8 @@ void mkc__estep_window(mkc_core_t *c)
         int its, st;
         for (s = 0; s < count; s++) {
             c->ebuf[s] = c->R[s][i] * c->R[s][i];        /* the objective needs the squares only */
-            amax = mkc__max_r(amax, fabs(c->R[s][i]));
-            ymax = mkc__max_r(ymax, fabs(target(c, s, i)));
+            amax = mkc__max_r(amax, MKC_FABS_R(c->R[s][i]));
+            ymax = mkc__max_r(ymax, MKC_FABS_R(target(c, s, i)));
         }
         ai = c->cfg.a > RC(0.0) ? c->cfg.a
                                               : mkc__max_r(c->cfg.a_factor * amax, RC(1e-12) * (RC(1.0) + ymax));
@@ -454,7 +454,7 @@ static int initialise_window(mkc_core_t *c)
                     r -= x[j] * c->theta[j];
                 acc += (mkc_acc)r * (mkc_acc)r;
             }
-            c->d[i] = (mkc_real)mkc__max_a(sqrt(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
+            c->d[i] = (mkc_real)mkc__max_a(MKC_SQRT_A(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
         }
     }
     return mkc__rebuild(c);
@@ -504,9 +504,10 @@ int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
         }
         med = mkc__median(c->ebuf, count);
         for (s = 0; s < count; s++)
-            c->ebuf[s] = (mkc_real)fabs(c->ebuf[s] - med);
+            c->ebuf[s] = (mkc_real)MKC_FABS_R(c->ebuf[s] - med);
         mad = RC(1.4826) * mkc__median(c->ebuf, count);
-        c->d[i] = (mkc_real)mkc__max_a(mad > RC(0.0) ? (mkc_acc)mad : sqrt(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
+        c->d[i] = (mkc_real)mkc__max_a(mad > RC(0.0) ? (mkc_acc)mad : MKC_SQRT_A(acc / (mkc_acc)count),
+                                       AC(MKC_TINY_ACC));
     }
     return mkc__rebuild(c);
 }
