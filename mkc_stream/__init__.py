@@ -11,7 +11,7 @@ _LAZY = {
     "StreamingMKC": "mkc_stream.stream",
     "StreamSnapshot": "mkc_stream.stream",
     "MagCalibrator": "mkc_stream.calib.streaming",
-    "Calibration": "mkc_stream.calib.streaming",
+    "Calibration": "mkc_stream.calib.result",
     "CheckpointEvent": "mkc_stream.calib.streaming",
     "NotCalibratedError": "mkc_stream.calib.streaming",
     "AcceptanceRules": "mkc_stream.calib.acceptance",

@@ -28,7 +28,7 @@ def test_every_exported_name_resolves(module):
 
 
 def test_the_user_facing_names_are_there():
-    from mkc_stream.calib.streaming import Calibration
+    from mkc_stream.calib.result import Calibration, Rejection
     from mkc_stream.diagnose import diagnose
     from mkc_stream.ingest.opener import open_source
     from mkc_stream.io.recording import read_recording, write_recording
@@ -36,6 +36,7 @@ def test_the_user_facing_names_are_there():
 
     assert mkc_stream.StreamingMKC is StreamingMKC and mkc_stream.MagCalibrator is MagCalibrator
     assert mkc_stream.Calibration is Calibration and mkc_stream.calib.Calibration is Calibration
+    assert mkc_stream.calib.Rejection is Rejection
     assert mkc_stream.read_recording is read_recording and mkc_stream.write_recording is write_recording
     assert mkc_stream.open_source is open_source and mkc_stream.simulate is simulate
     assert mkc_stream.diagnose.diagnose is diagnose          # mkc_stream.diagnose is the subpackage

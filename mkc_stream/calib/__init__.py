@@ -3,7 +3,8 @@
 #: name -> the module it comes from, imported on first use (PEP 562)
 _LAZY = {
     "MagCalibrator": "mkc_stream.calib.streaming",
-    "Calibration": "mkc_stream.calib.streaming",
+    "Calibration": "mkc_stream.calib.result",
+    "Rejection": "mkc_stream.calib.result",
     "CheckpointEvent": "mkc_stream.calib.streaming",
     "NotCalibratedError": "mkc_stream.calib.streaming",
     "AcceptanceRules": "mkc_stream.calib.acceptance",

@@ -1,7 +1,8 @@
 """MagCalibrator: the ellipsoid model fed sample by sample through the streaming MKC-EM.
 
 Keeps a *trial* calibration (the latest E-step checkpoint) and an *accepted* one (the last trial
-that passed the acceptance predicate); apply() uses only the accepted one. Features are the
+that passed the acceptance predicate and that its window supported as a better fit than the one
+accepted before, calib/confidence.py); apply() uses only the accepted one. Features are the
 ellipsoid's 9 terms of (m - c0)/s0; (c0, s0) follow the trial centre and radius, and when they
 move the window's features are recomputed from the raw samples kept in the state.
 """
