@@ -270,7 +270,7 @@ class Cal:
     def __init__(self):
         self.batches, self.accepted = [], None
 
-    def update(self, mags):
+    def learn_many(self, mags):
         self.batches.append(len(mags))
         return []
 
@@ -309,7 +309,7 @@ class SigintInUpdate(Cal):
         super().__init__()
         self.finished = 0
 
-    def update(self, mags):
+    def learn_many(self, mags):
         self.batches.append(len(mags))
         if len(self.batches) == 2:
             os.kill(os.getpid(), signal.SIGINT)
@@ -332,7 +332,7 @@ def test_ctrl_c_stops_between_updates_never_inside_one(tmp_path):
 
 def test_a_second_ctrl_c_interrupts_a_stuck_loop(tmp_path):
     class Stuck(Cal):
-        def update(self, mags):
+        def learn_many(self, mags):
             self.batches.append(len(mags))
             if len(self.batches) == 1:
                 os.kill(os.getpid(), signal.SIGINT)      # the polite request ...
@@ -343,3 +343,24 @@ def test_a_second_ctrl_c_interrupts_a_stuck_loop(tmp_path):
 
     res = Run(ListSource(samples_at(range(1000)), per_read=50), Stuck(), feed_every_s=0.0).run()
     assert res.ended == "interrupted" and res.samples == 50
+
+
+def test_counts_of_a_run_that_stops_while_the_reader_decodes_ahead():
+    """A reader thread may decode chunks the run never consumes; their bad frames and drops are not
+    the run's: counts(consumed) is what the decoder had counted by the end of the chunk that held the
+    last consumed sample."""
+    from mkc_stream.ingest.counters import DecodeCounts
+
+    class Decoder:
+        counts = DecodeCounts()
+
+    src = BaseSource("test://", decoder=Decoder())
+    chunk = [Sample(t=0.01 * k, mag=(1.0, 2.0, 3.0)) for k in range(10)]
+    Decoder.counts.bad_frames, Decoder.counts.drops = 1, 2
+    src._account(chunk)                                   # samples 1-10: 1 bad frame, 2 drops so far
+    Decoder.counts.bad_frames, Decoder.counts.drops = 4, 5
+    src._account(chunk)                                   # samples 11-20, decoded ahead
+    assert src.counts(consumed=7) == {"samples": 7, "bad_frames": 1, "drops": 2, "gaps": src.gaps.final()}
+    assert src.counts(consumed=10)["bad_frames"] == 1
+    assert src.counts(consumed=15)["bad_frames"] == 4
+    assert src.counts()["bad_frames"] == 4 and src.counts()["drops"] == 5

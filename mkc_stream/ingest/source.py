@@ -14,6 +14,9 @@ Wrappers (:mod:`.pacing`, :mod:`.threaded`) have the same interface.
 """
 from __future__ import annotations
 
+import collections
+import threading
+
 from typing import Protocol, runtime_checkable
 
 from ..recording_rules import HOST_TIME_MIN_GAP_S
@@ -55,6 +58,9 @@ class BaseSource:
         self.decoder = decoder
         self.eof = False
         self.samples = 0
+        #: (samples so far, bad frames, drops) at the end of each chunk not yet wholly consumed
+        self._marks: collections.deque = collections.deque()
+        self._marks_lock = threading.Lock()
         self.gaps = GapCounter(min_gap_s=HOST_TIME_MIN_GAP_S if time_source == "host" else 0.0)
         self.meta: dict[str, str] = {"source": url, "units.mag": units_mag, "time_source": time_source}
         if decoder is not None:
@@ -65,14 +71,31 @@ class BaseSource:
         upd = self.gaps.update
         for s in samples:
             upd(s.t)
+        c = self.decoder.counts if self.decoder is not None else None
+        if c is not None and samples:
+            # what the decoder had counted when this chunk's last sample came out: a run that stops
+            # at its N-th sample while a reader thread decodes ahead counts the damage up to there
+            with self._marks_lock:              # a reader thread appends while the run reads counts
+                self._marks.append((self.samples, c.bad_frames, c.drops))
         return samples
 
     def counts(self, consumed: int | None = None) -> dict:
-        """The spec's counts; ``consumed``: samples a run actually used (it may stop mid-batch)."""
+        """The spec's counts; ``consumed``: samples a run actually used (it may stop mid-batch, and a
+        reader thread may have decoded ahead: bad frames and drops are those counted by the end of
+        the chunk that held the last consumed sample)."""
         c = self.decoder.counts if self.decoder is not None else None
         n = self.samples if consumed is None else consumed
-        return {"samples": n, "bad_frames": c.bad_frames if c else 0,
-                "drops": c.drops if c else 0, "gaps": self.gaps.final()}
+        bad, drops = (c.bad_frames, c.drops) if c else (0, 0)
+        with self._marks_lock:
+            marks = self._marks
+            while len(marks) > 1 and marks[1][0] <= n:      # chunks wholly consumed: done with
+                marks.popleft()
+            if c is not None and n < self.samples:
+                for upto, b, d in marks:
+                    if upto >= n:
+                        bad, drops = b, d
+                        break
+        return {"samples": n, "bad_frames": bad, "drops": drops, "gaps": self.gaps.final()}
 
     def detail(self) -> dict:
         d = self.decoder.counts.as_dict() if self.decoder is not None else {}
