@@ -40,11 +40,18 @@ def _worst_accepted_difference(a, b):
 
 @pytest.mark.parametrize("pull,bound", [(None, 1e-5), (0.0, None)])
 def test_streamed_calibration_under_a_1e7_input_change(pull, bound):
-    """QMC5883L filtered (22,745 samples, 503 accepted checkpoints): input times (1 + 1e-7 N(0,1))."""
+    """QMC5883L filtered (22,745 samples, 503 accepted checkpoints): input times (1 + 1e-7 N(0,1)) from
+    sample 1000 on, after the final feature normalisation (checkpoint 20, sample 658). Before it, the
+    calibrator waits while its window's sphere fit is a cloud (spread > 30% of the radius), and the
+    sphere fit of a cloud is ill-conditioned by nature: a 1e-7 change moves that spread by up to 3
+    points, and on this recording it sits at 30.0% at checkpoint 20, so a perturbed stream can
+    normalise one checkpoint later and follow another path (finals up to 10.4 counts apart per axis, 1.8 of the
+    reported standard deviations; docs/decisions/0016). This test is about the E-step afterwards."""
     inp, cfg = _vector("qmc5883l_filtered")
     kw = {} if pull is None else {"sigma_pull": pull}
     m = inp["mags"]
-    m2 = m * (1.0 + 1e-7 * np.random.default_rng(0).standard_normal(m.shape))
+    m2 = m.copy()
+    m2[1000:] *= 1.0 + 1e-7 * np.random.default_rng(0).standard_normal(m[1000:].shape)
     a, _ = FW.python_checkpoints(m, cfg["window"], cfg["estep_every"], inp["unit"], policy=cfg["policy"], **kw)
     b, _ = FW.python_checkpoints(m2, cfg["window"], cfg["estep_every"], inp["unit"], policy=cfg["policy"], **kw)
     worst = _worst_accepted_difference(a, b)
