@@ -49,3 +49,21 @@ def test_all_instances_on_a_log_that_cannot_calibrate_says_so(capsys):
     assert code == 1 and len(obj["instances"]) == 3
     assert all(i["status"] == "rejected" and i["reason"] for i in obj["instances"])
     assert "nothing to compare" in obj["comparison"]["note"]
+
+
+def test_all_instances_write_one_parameter_file_for_every_compass(flight, tmp_path):
+    from types import SimpleNamespace
+
+    from mkc_stream.commands.calibrate import _write_params
+    from mkc_stream.commands.common import Outputs
+    from mkc_stream.params import read_params
+
+    _, fc = flight
+    path = tmp_path / "all.param"
+    outputs = Outputs()
+    _write_params(SimpleNamespace(params=[("ardupilot", str(path))]), outputs, [(0, fc), (1, fc)], None)
+    assert outputs.failed == []
+    compasses = read_params("ardupilot", path)
+    assert len(compasses) == 2
+    text = path.read_text()
+    assert "COMPASS_OFS_X" in text and "COMPASS_OFS2_X" in text and "COMPASS_MOT2_X" in text

@@ -65,8 +65,9 @@ def cmd_calibrate(args) -> int:
     check_plot_extra(args.plot)
     if args.all_instances:
         outputs = Outputs()
-        obj, ok = all_instances(args, args.recording, None if args.quiet else
-                                (sys.stderr if args.json == "-" else sys.stdout))
+        obj, ok, calibrations = all_instances(args, args.recording, None if args.quiet else
+                                              (sys.stderr if args.json == "-" else sys.stdout))
+        _write_params(args, outputs, calibrations, None)
         if args.json:
             outputs.attempt(args.json, write_json, obj, args.json)
         return outputs.done(EXIT_OK if ok else EXIT_REJECTED)
@@ -125,15 +126,19 @@ def _write_params(args, outputs, cal, unit):
     """--params: the accepted calibration as each requested target's file (its note on stderr)."""
     if not args.params:
         return
-    if cal is None:
+    if not cal:
         print("mkc-stream calibrate: no accepted calibration, no parameter file written", file=sys.stderr)
         return
     from ..params import CalibrationValues, write_params
 
     try:                                # a flight calibration also carries its power compensation
-        values = CalibrationValues(cal.hard_iron, cal.soft_iron, cal.field, unit=unit,
-                                   current_coeff=getattr(cal, "current", None),
-                                   throttle_coeff=getattr(cal, "throttle", None))
+        if isinstance(cal, list):       # --all-instances: [(instance, FlightCalibration)], one file for all
+            values = [CalibrationValues(c.hard_iron, c.soft_iron, c.field, unit=c.unit, current_coeff=c.current,
+                                        throttle_coeff=c.throttle, instance=k) for k, c in cal]
+        else:
+            values = CalibrationValues(cal.hard_iron, cal.soft_iron, cal.field, unit=unit,
+                                       current_coeff=getattr(cal, "current", None),
+                                       throttle_coeff=getattr(cal, "throttle", None))
     except ValueError as exc:           # counts: the targets need a physical unit
         outputs.failed.append(f"no parameter file written: {exc}")
         return

@@ -102,7 +102,8 @@ def report_lines(fc, unit, rejection) -> list:
 
 
 def all_instances(args, path, out):
-    """(json object, exit ok?) of --all-instances: every compass of a flight log calibrated, then compared."""
+    """(json object, every compass accepted?, [(instance number, FlightCalibration)] of the accepted ones)
+    of --all-instances: every compass of a flight log calibrated, then compared."""
     from ..flight.compare import compare_compasses
     from ..ingest.flightlogs import inspect_flight_log, is_flight_log, read_flight_log
     from .common import UsageError
@@ -139,4 +140,5 @@ def all_instances(args, path, out):
             print(f"  note          : {comparison['note']}", file=out)
         for bad in comparison["inconsistent"]:
             print(f"  INCONSISTENT  : instance {bad['id']}: {bad['reason']}", file=out)
-    return {"instances": results, "comparison": comparison, "recording": str(path)}, len(accepted) == len(ids)
+    numbered = [(k, fc) for k, cid in enumerate(ids) for c, _, fc in accepted if c == cid]
+    return {"instances": results, "comparison": comparison, "recording": str(path)}, len(accepted) == len(ids), numbered
