@@ -6,8 +6,6 @@
  */
 #include "mkc_internal.h"
 
-#define MKC_OUTLIER_K 3.5          /* quality.outlier_mask(k=3.5) */
-#define MKC_MAD_SCALE 1.4826       /* robust.MAD_SCALE */
 
 /* m = S (raw_k - b); returns |m| (relative_residuals' y row and its norm) */
 static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration *c, mkc_real *m)
@@ -33,12 +31,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         et[k] = calibrated(g, k, trial, m) / trial->field - RC(1.0);
         ea[k] = calibrated(g, k, acc, m) / acc->field - RC(1.0);
     }
-    for (k = 0; k < count; k++)
-        w[k] = et[k];
-    med = mkc__median(w, count);
-    for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R(et[k] - med);
-    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    mad = mkc__mad_about_median(et, count, w, &med);
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_IN(k) (!(mad != RC(0.0) && MKC_FABS_R(et[(k)] - med) > thr) && isfinite(et[(k)]) && isfinite(ea[(k)]))
     for (k = 0; k < count; k++)

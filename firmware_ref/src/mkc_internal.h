@@ -118,6 +118,10 @@ void mkc__recount_cells(mkc_mag_t *g, int count);
 mkc_real mkc__pairwise_sum(const mkc_real *x, int n);
 /* np.median: the k-th smallest by selection (x is reordered). */
 mkc_real mkc__median(mkc_real *x, int n);
+/* calib/quality.py outlier_mask's scale: *med = median(x); returns 1.4826 median|x - med| (work: n values). */
+mkc_real mkc__mad_about_median(const mkc_real *x, int n, mkc_real *work, mkc_real *med);
+#define MKC_OUTLIER_K 3.5          /* quality.outlier_mask(k=3.5): outliers lie beyond k robust scales */
+#define MKC_MAD_SCALE 1.4826       /* robust.MAD_SCALE */
 /* Fraction of the 72 direction cells hit by the rows v (n x 3, calib/quality.py sphere_coverage). */
 mkc_real mkc__coverage_of_unit_cells(const int *cells_hit, int ncells);
 int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz);

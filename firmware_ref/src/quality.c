@@ -7,8 +7,6 @@
  */
 #include "mkc_internal.h"
 
-#define MKC_OUTLIER_K 3.5          /* outlier_mask(k=3.5) */
-#define MKC_MAD_SCALE 1.4826
 
 /* np.std of x[0..n-1] (work: n scratch values): sqrt(mean((x - mean(x))^2)). */
 static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
@@ -43,12 +41,7 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
             hit[mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)] = 1;
     }
     /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD */
-    for (k = 0; k < count; k++)
-        w[k] = r[k];
-    med = mkc__median(w, count);
-    for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R(r[k] - med);
-    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    mad = mkc__mad_about_median(r, count, w, &med);
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_OUT(k) (mad != RC(0.0) && MKC_FABS_R(r[(k)] - med) > thr)
     /* residual_rms: over the inliers */

@@ -86,6 +86,17 @@ mkc_real mkc__median(mkc_real *x, int n)
     return (a + b) / RC(2.0);
 }
 
+mkc_real mkc__mad_about_median(const mkc_real *x, int n, mkc_real *work, mkc_real *med)
+{
+    int k;
+    for (k = 0; k < n; k++)
+        work[k] = x[k];
+    *med = mkc__median(work, n);
+    for (k = 0; k < n; k++)
+        work[k] = MKC_FABS_R(x[k] - *med);
+    return RC(MKC_MAD_SCALE) * mkc__median(work, n);
+}
+
 /* Cell of a unit vector as calib/quality.py direction_cells computes it (on u = v / |v|). */
 int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz)
 {
