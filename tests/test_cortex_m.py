@@ -31,6 +31,8 @@ import sys
 import numpy as np
 import pytest
 
+from mkc_stream import cport as FW
+
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 FIRMWARE_DIR = REPO_ROOT / "firmware_ref"
 QEMU_DIR = FIRMWARE_DIR / "build" / "qemu"
@@ -75,7 +77,7 @@ def harness():
     if WHY is not None:
         pytest.skip(f"Cortex-M toolchain or emulator missing: {WHY}")
     """make -C firmware_ref qemu: the harness for both boards and the host, all precisions."""
-    proc = subprocess.run(["make", "-j2", "-C", str(FIRMWARE_DIR), "qemu"], capture_output=True, text=True)
+    proc = FW.run_make("-j2", "qemu")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return QEMU_DIR
 
@@ -145,7 +147,7 @@ def calibration_differences(host, board):
 @needs_target
 def test_cross_build_for_every_core_is_warning_free_and_sized():
     """make cross: M0+, M4F, M7, M33 x double, float, all-float with -Werror; the size table lists each."""
-    proc = subprocess.run(["make", "-j2", "-C", str(FIRMWARE_DIR), "cross"], capture_output=True, text=True)
+    proc = FW.run_make("-j2", "cross")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     rows = [line.split() for line in proc.stdout.splitlines() if line.split()[:1] in (["m0plus"], ["m4f"], ["m7"],
                                                                                       ["m33"])]

@@ -60,7 +60,7 @@ EXACT = pytest.mark.skipif(not LIBM_MATCHES, reason="this machine's libm differs
 @pytest.fixture(scope="session")
 def built():
     """make -C firmware_ref (everything), once per session."""
-    proc = subprocess.run(["make", "-j2", "-C", str(FW.FIRMWARE_DIR), "all"], capture_output=True, text=True)
+    proc = FW.run_make("-j2", "all")
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     return FW.BUILD_DIR
 
@@ -523,7 +523,7 @@ def test_bad_configuration_is_refused(built):
 # ---- C self-test, sanitizers, valgrind -------------------------------------------------------------
 
 def test_c_selftest(built):
-    proc = subprocess.run(["make", "-C", str(FW.FIRMWARE_DIR), "check"], capture_output=True, text=True)
+    proc = FW.run_make("check")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
     assert "0 failures" in proc.stdout
 
@@ -533,8 +533,8 @@ def test_a_second_compiler_builds_the_port_and_reproduces_the_reference(tmp_path
     """clang, with the same strict warnings (-Werror -Wdouble-promotion ...): the self-test passes and the
     double build reproduces a golden vector to the double tolerances, so nothing depends on gcc."""
     build = tmp_path / "clang"
-    proc = subprocess.run(["make", "-j2", "-C", str(FW.FIRMWARE_DIR), "CC=clang", f"BUILD={build}", "check",
-                           f"{build}/mkc_replay"], capture_output=True, text=True)
+    proc = FW.run_make("-j2", "CC=clang", f"BUILD={build}", "check",
+                         f"{build}/mkc_replay")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert proc.stdout.count(" 0 failures") == 2
     v = VECTORS["syn_s3_b25"]
@@ -545,7 +545,7 @@ def test_a_second_compiler_builds_the_port_and_reproduces_the_reference(tmp_path
 
 def test_sanitizers_over_the_vector_suite(built, tmp_path):
     """-fsanitize=address,undefined: the C self-test and mkc_replay over every replayable vector."""
-    proc = subprocess.run(["make", "-j2", "-C", str(FW.FIRMWARE_DIR), "sanitize"], capture_output=True, text=True)
+    proc = FW.run_make("-j2", "sanitize")
     if proc.returncode != 0 and "sanitize" in (proc.stderr + proc.stdout).lower() and "cannot find" in proc.stderr:
         pytest.skip("the compiler has no address/undefined sanitizer runtime")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -569,7 +569,7 @@ def test_sanitizers_over_the_vector_suite(built, tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind is not installed")
 def test_valgrind_over_the_vector_suite(built, tmp_path):
-    proc = subprocess.run(["make", "-C", str(FW.FIRMWARE_DIR), "valgrind"], capture_output=True, text=True)
+    proc = FW.run_make("valgrind")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for name in REPLAY:
         v = VECTORS[name]

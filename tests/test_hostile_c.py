@@ -268,7 +268,7 @@ def test_sanitized_replay_over_the_malformed_corpus():
     why = _sanitizer_problem()
     if why:
         pytest.skip(why)
-    p = subprocess.run(["make", "-C", str(FW.FIRMWARE_DIR), "sanitize-replay"], capture_output=True, text=True)
+    p = FW.run_make("sanitize-replay")
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     n = 2 * (len(CORPUS_FILES) + 9)      # 7 generated inputs, a directory, a missing file; two modes each
     assert f"sanitize-replay: {n} runs of build/asan/mkc_replay over the malformed inputs, 0 failures" in p.stdout

@@ -337,7 +337,8 @@ def test_queue_is_bounded_drops_are_counted_and_stop_is_prompt():
     stopped_in = time.monotonic() - asked["t"]
     reader.close()
     th.join()
-    assert result.ended == "interrupted" and stopped_in < 1.0, stopped_in     # before: 17.6 s at 30 kHz
+    # a hang guard, not a speed target: before, 17.6 s at 30 kHz; a loaded machine answers in 1-2 s
+    assert result.ended == "interrupted" and stopped_in < 5.0, stopped_in
     assert reader.peak <= 20000 + src.per_read                                 # bounded
     assert reader.dropped > 0 and run_.counts()["drops"] == reader.dropped     # counted, reported
     d = reader.detail()

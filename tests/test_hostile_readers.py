@@ -28,6 +28,10 @@ N_FRAMES = 120
 TEXT_FORMATS = (".log", ".asc", ".trc", ".csv")
 HYP = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
+#: a hang guard, not a speed target (those live in tools/bench*.py): the failures it catches took
+#: 120 s or never ended, and a loaded test machine (parallel workers) can take a few seconds
+HANG_GUARD_S = 10.0
+
 
 def small_recording(path, n=200):
     t = np.arange(n) / 50.0
@@ -115,7 +119,7 @@ def test_transposed_recording_is_refused_at_once_with_a_short_message(tmp_path):
     t0 = time.perf_counter()
     with pytest.raises(RecordingError, match=r"line 1 is longer than 65536 bytes") as exc:
         read_recording(path)
-    assert time.perf_counter() - t0 < 2.0
+    assert time.perf_counter() - t0 < HANG_GUARD_S
     msg = str(exc.value)
     assert len(msg) < 300 and printable_one_line(msg) and "'t,0.0,0.01," in msg
 
@@ -136,7 +140,7 @@ def test_header_checks_are_linear_and_messages_bounded(tmp_path, monkeypatch, he
     t0 = time.perf_counter()
     with pytest.raises(RecordingError, match=match) as exc:
         read_recording(path)
-    assert time.perf_counter() - t0 < 2.0
+    assert time.perf_counter() - t0 < HANG_GUARD_S
     msg = str(exc.value)
     assert len(msg) < 400 and printable_one_line(msg)
 
@@ -158,7 +162,7 @@ def test_garbage_is_refused_after_a_bounded_read_with_a_bounded_message(tmp_path
     t0 = time.perf_counter()
     with pytest.raises(RecordingError, match=match) as exc:
         read_recording(path)
-    assert time.perf_counter() - t0 < 1.0
+    assert time.perf_counter() - t0 < HANG_GUARD_S
     assert len(str(exc.value)) < 300 and printable_one_line(str(exc.value))
 
 

@@ -23,7 +23,8 @@ from .bindings import (  # noqa: F401
     CCalibration, CCheckpointEvent, CMagCalibrator, CStreamingMKC, load, reason_text,
 )
 from .toolchain import (  # noqa: F401
-    BUILD_DIR, FIRMWARE_DIR, PRECISIONS, FirmwareUnavailable, binary_path, build, replay_path, toolchain_problem,
+    BUILD_DIR, FIRMWARE_DIR, PRECISIONS, FirmwareUnavailable, binary_path, build, replay_path, run_make,
+    toolchain_problem,
 )
 from .compare import (  # noqa: F401
     CORE_QUANTITIES, TOLERANCES, Comparison, c_checkpoints, c_segment, compare_checkpoints, load_reference_state,

@@ -5,11 +5,17 @@ demand with `make` (a C compiler and make are needed; FirmwareUnavailable says w
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 import shutil
 import subprocess
 import threading
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: the lock holds between threads only
+    fcntl = None
 
 FIRMWARE_DIR = pathlib.Path(__file__).resolve().parents[2] / "firmware_ref"
 BUILD_DIR = FIRMWARE_DIR / "build"
@@ -35,13 +41,35 @@ def toolchain_problem() -> str | None:
 _build_lock = threading.Lock()
 
 
+@contextlib.contextmanager
+def _make_lock():
+    """One `make` in firmware_ref/ at a time, across threads and processes (parallel test workers
+    would otherwise compile the same objects at once). POSIX file lock; without fcntl, threads only."""
+    with _build_lock:
+        if fcntl is None:
+            yield
+            return
+        BUILD_DIR.mkdir(parents=True, exist_ok=True)
+        with open(BUILD_DIR / ".make-lock", "a") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def run_make(*args: str) -> subprocess.CompletedProcess:
+    """`make -C firmware_ref ARGS` under the build lock; the caller judges the return code."""
+    with _make_lock():
+        return subprocess.run(["make", "-C", str(FIRMWARE_DIR), *args], capture_output=True, text=True)
+
+
 def build(*targets: str) -> None:
     """Run `make -C firmware_ref TARGETS` (default: all). Raises FirmwareUnavailable on failure."""
     why = toolchain_problem()
     if why:
         raise FirmwareUnavailable(why)
-    with _build_lock:
-        proc = subprocess.run(["make", "-C", str(FIRMWARE_DIR), *targets], capture_output=True, text=True)
+    proc = run_make(*targets)
     if proc.returncode != 0:
         raise FirmwareUnavailable(f"make -C firmware_ref {' '.join(targets)} failed:\n{proc.stdout[-3000:]}"
                                   f"{proc.stderr[-3000:]}")
