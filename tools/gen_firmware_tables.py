@@ -86,6 +86,13 @@ def _hex(v: float) -> str:
     return v.hex()
 
 
+def _hex_float32(v: float) -> str:
+    """v rounded to the nearest float32, as a C float literal."""
+    import numpy as np
+
+    return float(np.float32(v)).hex() + "f"
+
+
 def render() -> str:
     from mkc_stream import kernels as KS
     from mkc_stream.calib import acceptance
@@ -143,12 +150,21 @@ def render() -> str:
     p(f"/* Gauss-Legendre, {GL_ORDER} nodes mapped to [0, 1] (kernels/quadrature.py) */")
     p(f"#define MKC_GL_ORDER {GL_ORDER}")
     p("#ifdef MKC_TABLES_WANT_GL /* only the normaliser's translation unit holds the table */")
+    p("#if MKC_ESTEP_DOUBLE")
     p("static const double mkc_gl_nodes[MKC_GL_ORDER] = {")
     p(",\n".join(f"    {_hex(v)} /* {float(v)!r} */" for v in GL_NODES))
     p("};")
     p("static const double mkc_gl_weights[MKC_GL_ORDER] = {")
     p(",\n".join(f"    {_hex(v)} /* {float(v)!r} */" for v in GL_WEIGHTS))
     p("};")
+    p("#else /* a single-precision E-step: the same values rounded to float (no conversion at run time) */")
+    p("static const float mkc_gl_nodes[MKC_GL_ORDER] = {")
+    p(",\n".join(f"    {_hex_float32(v)}" for v in GL_NODES))
+    p("};")
+    p("static const float mkc_gl_weights[MKC_GL_ORDER] = {")
+    p(",\n".join(f"    {_hex_float32(v)}" for v in GL_WEIGHTS))
+    p("};")
+    p("#endif")
     p("#endif")
     p("")
     p("/* direction cells (kernels/magwindow.py) */")

@@ -32,13 +32,18 @@
 
 /* Storage and arithmetic precision. Default double: bit-for-bit the Python reference's kernels.
  * -DMKC_USE_FLOAT stores every window and estimate value in float (the memory of a small MCU) and
- * keeps two parts in double arithmetic by default (see README "The float build"):
- *   MKC_ACC_DOUBLE   the window's normal equations A, b, their Cholesky factor and solves
- *   MKC_ESTEP_DOUBLE the E-step objective, the normaliser quadrature and the BFGS iterate
- * Measured: with both, one checkpoint of the float build from the reference's state differs from
- * it by <= 1e-5 (theta, calibration); with either in float, by up to 1e-1 (the E-step likelihood
- * is flat in sigma, and float noise in A is amplified by its condition). -DMKC_ACC_DOUBLE=0
- * -DMKC_ESTEP_DOUBLE=0 gives the all-float build for an FPU without double. */
+ * keeps three parts in double arithmetic by default (see README "The float build"):
+ *   MKC_ACC_DOUBLE        the window's normal equations A, b, their Cholesky factor and solves
+ *   MKC_ESTEP_DOUBLE      the E-step objective, the normaliser quadrature and the BFGS iterate
+ *   MKC_CHECKPOINT_DOUBLE the checkpoint code: sphere fit, geometry, eigen-decompositions, quality
+ * Measured: with all three, one checkpoint of the float build from the reference's state differs
+ * from it by <= 1e-5 (theta, calibration). -DMKC_ACC_DOUBLE=0 -DMKC_ESTEP_DOUBLE=0 gives the
+ * all-float numerics for an FPU without double: its E-step evaluates the objective and gradient
+ * without cancellation (series, compensated sums) and learns curvature only from gradient changes
+ * above float rounding (estep.c); free-running, its accepted calibrations stay within 5e-5 of the
+ * reference on every golden vector (tools/measure_float_precision.py). -DMKC_CHECKPOINT_DOUBLE=0
+ * moves the checkpoint code to float too (measured up to 6.5e-4 off on the QMC5883L recording,
+ * whose own trajectory turns on the last bits of the trial centre). */
 #ifdef MKC_USE_FLOAT
 typedef float mkc_real;
 #ifndef MKC_ACC_DOUBLE
@@ -60,6 +65,11 @@ typedef double mkc_real;
 typedef double mkc_acc;
 #else
 typedef float mkc_acc;
+#endif
+
+/* the checkpoint code's arithmetic (mkc_internal.h mkc_creal): double unless set to 0 */
+#ifndef MKC_CHECKPOINT_DOUBLE
+#define MKC_CHECKPOINT_DOUBLE 1
 #endif
 
 /* arithmetic type of the E-step (objective, normaliser, BFGS) */

@@ -25,7 +25,7 @@ static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration 
 int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *trial, const mkc_mag_calibration *acc)
 {
     mkc_real *et = g->core.ebuf, *ea = &g->core.R[0][0], *w = g->work, m[3], med, mad, thr, gain;
-    double sums[MKC_N_CELLS], ss = 0.0, se;
+    mkc_creal sums[MKC_N_CELLS], ss = CR(0.0), se;
     int used[MKC_N_CELLS], k, n = 0, j, G = 0;
     for (k = 0; k < count; k++) {
         et[k] = calibrated(g, k, trial, m) / trial->field - RC(1.0);
@@ -41,7 +41,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         return 0;
     gain = mkc__pairwise_sum(w, n) / (mkc_real)n;
     for (k = 0; k < MKC_N_CELLS; k++) {
-        sums[k] = 0.0;
+        sums[k] = CR(0.0);
         used[k] = 0;
     }
     for (k = 0, j = 0; k < count; k++) {
@@ -50,7 +50,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
             /* numpy: cal / max(|cal|, 1e-300), the zero vector's cell at |cal| = 0 */
             int c = nk > RC(0.0) ? mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)
                                  : mkc__unit_direction_cell(RC(0.0), RC(0.0), RC(0.0));
-            sums[c] += (double)(w[j++] - gain);
+            sums[c] += (mkc_creal)(w[j++] - gain);
             used[c] = 1;
         }
     }
@@ -61,8 +61,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     }
     if (G < 2)
         return 0;
-    se = sqrt(ss * (double)G / (double)(G - 1)) / (double)n;
-    return (double)gain > MKC_Z_SWITCH * se;
+    se = MKC_SQRT_C(ss * (mkc_creal)G / (mkc_creal)(G - 1)) / (mkc_creal)n;
+    return (mkc_creal)gain > CR(MKC_Z_SWITCH) * se;
 }
 
 /* sphere_spread: 1.4826 MAD of |m - c| - r over the window, relative to r (HUGE_VAL for r <= 0). */

@@ -8,9 +8,13 @@
  * (+ FAR_EXTRA_ITER while far from the optimum; each with at most 40 halvings and a bounded
  * doubling), warm-started from H. A non-finite trial
  * is a failed step, so no NaN reaches the state.
+ * A single-precision E-step (MKC_ESTEP_DOUBLE = 0) evaluates the same F and gradient through
+ * cancellation-free series with compensated sums (mkc_internal.h), and updates the BFGS curvature
+ * only from gradient changes above their rounding noise.
  */
 #include "mkc_internal.h"
 
+#if MKC_ESTEP_DOUBLE
 /* (1 - h, (1 - h) - q h, h) with h = e^-q from one exp; series for small q (no cancellation). */
 static void omh_terms(mkc_ereal q, mkc_ereal *omh, mkc_ereal *omh_qh, mkc_ereal *h)
 {
@@ -25,12 +29,13 @@ static void omh_terms(mkc_ereal q, mkc_ereal *omh, mkc_ereal *omh_qh, mkc_ereal 
     *omh = EC(1.0) - *h;
     *omh_qh = *omh - q * *h;
 }
+#endif
 
 /* F and its gradient in (log sigma, log d) for the residuals e[:n] truncated to [-a, a]. The caller
  * passes the squares e2[k] = e[k] e[k]: the reference's q = e[k] * e[k] * inv is (e[k] e[k]) inv,
  * so squaring once per E-step instead of once per evaluation gives the same q. */
 static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
-                           mkc_ereal *g0, mkc_ereal *g1)
+                           mkc_ereal *g0, mkc_ereal *g1, mkc_ereal *nu)
 {
     mkc_ereal sigma = MKC_EXP_E(ls);
     mkc_ereal d = MKC_EXP_E(ld);
@@ -41,6 +46,20 @@ static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n
     logZ = mkc__log_normaliser_grad(sigma, a / d, &dZs, &dZA);
     inv = EC(1.0) / (EC(2.0) * d * d * s2);
     k = 0;
+#if !MKC_ESTEP_DOUBLE
+    {
+        /* single precision: cancellation-free terms (mkc__omh_terms_f) and compensated sums */
+        mkc_ereal c_acc = EC(0.0), c_s = EC(0.0), c_d = EC(0.0);
+        for (; k < n; k++) {
+            mkc_ereal q = e2[k] * inv;
+            mkc_ereal omh, omh_qh, h;
+            mkc__omh_terms_f(q, &omh, &omh_qh, &h);
+            mkc__kahan_add_f(&acc, &c_acc, omh);
+            mkc__kahan_add_f(&acc_s, &c_s, omh_qh);
+            mkc__kahan_add_f(&acc_d, &c_d, q * h);
+        }
+    }
+#else
     /* Two residuals per pass: when both take the series branch of omh_terms, its statements are
      * written out for the pair side by side (isomorphic, so the compiler may pair them into SIMD
      * operations); every term is computed as omh_terms computes it and the sums still receive
@@ -74,11 +93,21 @@ static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n
         acc_s += omh_qh;
         acc_d += q * h;
     }
+#endif
     F = ld + logZ + s2 * acc / (mkc_ereal)n - pull * ls / (mkc_ereal)n;    /* the weak prior on sigma */
     dF_ds = dZs + EC(2.0) * sigma * acc_s / (mkc_ereal)n;
     dF_dd = EC(1.0) / d - (a / (d * d)) * dZA - EC(2.0) * s2 / d * acc_d / (mkc_ereal)n;
     *g0 = sigma * dF_ds - pull / (mkc_ereal)n;
     *g1 = d * dF_dd;
+#if !MKC_ESTEP_DOUBLE
+    /* rounding noise of g0, g1: MKC_GRAD_NOISE_ULPS ulps of the magnitudes of the terms each sums */
+    nu[0] = EC(MKC_GRAD_NOISE_ULPS) * EC(MKC_FLT_EPS) * (MKC_FABS_E(sigma * dZs) + MKC_FABS_E(sigma * (dF_ds - dZs))
+                                                        + pull / (mkc_ereal)n);
+    nu[1] = EC(MKC_GRAD_NOISE_ULPS) * EC(MKC_FLT_EPS) * (EC(1.0) + MKC_FABS_E(a / d * dZA)
+                                                        + MKC_FABS_E(EC(2.0) * s2 * acc_d / (mkc_ereal)n));
+#else
+    (void)nu;
+#endif
     return F;
 }
 
@@ -87,7 +116,8 @@ static mkc_ereal objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n
 mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
                                mkc_ereal *g0, mkc_ereal *g1)
 {
-    return objective(ls, ld, e2, n, a, pull, g0, g1);
+    mkc_ereal nu[2];
+    return objective(ls, ld, e2, n, a, pull, g0, g1, nu);
 }
 
 #define FIN3(a, b, c) (isfinite(a) && isfinite(b) && isfinite(c))
@@ -103,6 +133,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
 {
     mkc_ereal lo0, hi0, lo1, hi1, z0, z1, F, g0, g1, h00, h01, h11;
     mkc_ereal n0 = EC(0.0), n1 = EC(0.0), Fn = EC(0.0), gn0 = EC(0.0), gn1 = EC(0.0);
+    mkc_ereal nu[2] = {EC(0.0), EC(0.0)}, nun[2] = {EC(0.0), EC(0.0)};   /* gradient noise (float E-step) */
     int status = MKC_NOT_CONVERGED, it = 0;
     *iters = 0;
     if (n < 1 || !(a > EC(0.0)) || !(sigma0 > EC(0.0)) || !(d0 > EC(0.0)) || !(d_lo <= d_hi)) {
@@ -117,7 +148,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
     hi1 = MKC_LOG_E(d_hi);
     z0 = CLAMP(MKC_LOG_E(sigma0), lo0, hi0);
     z1 = CLAMP(MKC_LOG_E(d0), lo1, hi1);
-    F = objective(z0, z1, e2, n, a, pull, &g0, &g1);
+    F = objective(z0, z1, e2, n, a, pull, &g0, &g1, nu);
     if (!FIN3(F, g0, g1)) {
         *sigma_out = sigma0;
         *d_out = d0;
@@ -170,7 +201,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         for (ls = 0; ls < 40; ls++) {
             n0 = CLAMP(z0 + alpha * p0, lo0, hi0);
             n1 = CLAMP(z1 + alpha * p1, lo1, hi1);
-            Fn = objective(n0, n1, e2, n, a, pull, &gn0, &gn1);
+            Fn = objective(n0, n1, e2, n, a, pull, &gn0, &gn1, nun);
             if (FIN3(Fn, gn0, gn1)) {
                 if (Fn <= F + EC(1e-4) * (g0 * (n0 - z0) + g1 * (n1 - z1))) {
                     accepted = 1;
@@ -189,7 +220,8 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
                 mkc_ereal t0 = CLAMP(z0 + EC(2.0) * alpha * p0, lo0, hi0);
                 mkc_ereal t1 = CLAMP(z1 + EC(2.0) * alpha * p1, lo1, hi1);
                 mkc_ereal gt0, gt1;
-                mkc_ereal Ft = objective(t0, t1, e2, n, a, pull, &gt0, &gt1);
+                mkc_ereal nut[2];
+                mkc_ereal Ft = objective(t0, t1, e2, n, a, pull, &gt0, &gt1, nut);
                 if (!FIN3(Ft, gt0, gt1) || Ft >= Fn)
                     break;
                 alpha *= EC(2.0);
@@ -198,6 +230,8 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
                 Fn = Ft;
                 gn0 = gt0;
                 gn1 = gt1;
+                nun[0] = nut[0];
+                nun[1] = nut[1];
             }
         }
         if (!accepted) {
@@ -210,7 +244,15 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         y0 = gn0 - g0;
         y1 = gn1 - g1;
         sy = s0 * y0 + s1 * y1;
+#if MKC_ESTEP_DOUBLE
         if (sy > EC(1e-12) * MKC_SQRT_E((s0 * s0 + s1 * s1) * (y0 * y0 + y1 * y1))) {
+#else
+        /* and only a curvature pair that float resolves: s^T y above the rounding noise of the two
+         * gradients (on the flat ridge, or once the steps are tiny, y is noise, and a BFGS update
+         * from it would carry a wrong curvature into every later warm-started E-step) */
+        if (sy > EC(1e-12) * MKC_SQRT_E((s0 * s0 + s1 * s1) * (y0 * y0 + y1 * y1))
+            && sy > MKC_FABS_E(s0) * (nu[0] + nun[0]) + MKC_FABS_E(s1) * (nu[1] + nun[1])) {
+#endif
             /* BFGS inverse update H <- (I - r s y^T) H (I - r y s^T) + r s s^T */
             mkc_ereal r = EC(1.0) / sy;
             mkc_ereal hy0 = h00 * y0 + h01 * y1;
@@ -226,6 +268,8 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         F = Fn;
         g0 = gn0;
         g1 = gn1;
+        nu[0] = nun[0];
+        nu[1] = nun[1];
         if (mkc__max_e(MKC_FABS_E(s0), MKC_FABS_E(s1)) <= EC(1e-12)) {
             status = MKC_OK;
             break;

@@ -74,48 +74,57 @@ int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, 
  * convergence makes 6-10 the norm). The symmetric square root Q diag(sqrt l) Q^T built from it
  * does not depend on the order or signs of the eigenvectors, so it equals numpy.linalg.eigh's. */
 #define MKC_JACOBI_MAX_SWEEPS 60
-int mkc__jacobi_eigen(double a[9][9], int k, double *w, double V[9][9])
+/* stop when sum of squared off-diagonals <= OFF2 * sum of squared diagonals: ~1e-20 of the diagonal
+ * in double; in float (MKC_CHECKPOINT_DOUBLE=0) ~3e-7, the level float rotations reach */
+#if MKC_CREAL_FLOAT
+#define MKC_JACOBI_OFF2 1e-13
+#define MKC_JACOBI_BIG 1e18
+#else
+#define MKC_JACOBI_OFF2 1e-40
+#define MKC_JACOBI_BIG 1e150
+#endif
+int mkc__jacobi_eigen(mkc_creal a[9][9], int k, mkc_creal *w, mkc_creal V[9][9])
 {
     int sweep, p, q, r, i, j;
     if (V) {
         for (i = 0; i < k; i++)
             for (j = 0; j < k; j++)
-                V[i][j] = (i == j) ? 1.0 : 0.0;
+                V[i][j] = (i == j) ? CR(1.0) : CR(0.0);
     }
     for (sweep = 1; sweep <= MKC_JACOBI_MAX_SWEEPS; sweep++) {
-        double off = 0.0, diag = 0.0;
+        mkc_creal off = CR(0.0), diag = CR(0.0);
         for (p = 0; p < k; p++) {
             diag += a[p][p] * a[p][p];
             for (q = p + 1; q < k; q++)
                 off += a[p][q] * a[p][q];
         }
-        if (!(off > 1e-40 * diag) || !isfinite(off))   /* off-diagonal below ~1e-20 of the diagonal */
+        if (!(off > CR(MKC_JACOBI_OFF2) * diag) || !isfinite(off))   /* off-diagonal negligible */
             break;
         for (p = 0; p < k - 1; p++) {
             for (q = p + 1; q < k; q++) {
-                double apq = a[p][q], theta, t, c, s, tau;
-                if (apq == 0.0)
+                mkc_creal apq = a[p][q], theta, t, c, s, tau;
+                if (apq == CR(0.0))
                     continue;
-                theta = (a[q][q] - a[p][p]) / (2.0 * apq);
+                theta = (a[q][q] - a[p][p]) / (CR(2.0) * apq);
                 /* t = tan of the rotation angle: the smaller root of t^2 + 2 t theta - 1 = 0 */
-                if (fabs(theta) > 1e150)
-                    t = 0.5 / theta;
+                if (MKC_FABS_C(theta) > CR(MKC_JACOBI_BIG))   /* theta^2 would overflow */
+                    t = CR(0.5) / theta;
                 else
-                    t = (theta >= 0.0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
-                c = 1.0 / sqrt(t * t + 1.0);
+                    t = (theta >= CR(0.0) ? CR(1.0) : -CR(1.0)) / (MKC_FABS_C(theta) + MKC_SQRT_C(theta * theta + CR(1.0)));
+                c = CR(1.0) / MKC_SQRT_C(t * t + CR(1.0));
                 s = t * c;
-                tau = s / (1.0 + c);
+                tau = s / (CR(1.0) + c);
                 a[p][p] -= t * apq;
                 a[q][q] += t * apq;
-                a[p][q] = a[q][p] = 0.0;
+                a[p][q] = a[q][p] = CR(0.0);
                 for (r = 0; r < k; r++) {
                     if (r != p && r != q) {
-                        double arp = a[r][p], arq = a[r][q];
+                        mkc_creal arp = a[r][p], arq = a[r][q];
                         a[r][p] = a[p][r] = arp - s * (arq + tau * arp);
                         a[r][q] = a[q][r] = arq + s * (arp - tau * arq);
                     }
                     if (V) {
-                        double vrp = V[r][p], vrq = V[r][q];
+                        mkc_creal vrp = V[r][p], vrq = V[r][q];
                         V[r][p] = vrp - s * (vrq + tau * vrp);
                         V[r][q] = vrq + s * (vrp - tau * vrq);
                     }
@@ -128,7 +137,7 @@ int mkc__jacobi_eigen(double a[9][9], int k, double *w, double V[9][9])
     /* ascending order (numpy.linalg.eigh's), eigenvectors along */
     for (i = 1; i < k; i++) {
         for (j = i; j > 0 && w[j] < w[j - 1]; j--) {
-            double t = w[j];
+            mkc_creal t = w[j];
             w[j] = w[j - 1];
             w[j - 1] = t;
             if (V) {
@@ -144,9 +153,9 @@ int mkc__jacobi_eigen(double a[9][9], int k, double *w, double V[9][9])
 }
 
 /* Gaussian elimination with partial pivoting (LAPACK getrf's pivot choice). */
-int mkc__solve3(const double A[3][3], const double *b, double *x)
+int mkc__solve3(const mkc_creal A[3][3], const mkc_creal *b, mkc_creal *x)
 {
-    double M[3][4];
+    mkc_creal M[3][4];
     int i, j, k;
     for (i = 0; i < 3; i++) {
         for (j = 0; j < 3; j++)
@@ -155,28 +164,28 @@ int mkc__solve3(const double A[3][3], const double *b, double *x)
     }
     for (k = 0; k < 3; k++) {
         int piv = k;
-        double r;
+        mkc_creal r;
         for (i = k + 1; i < 3; i++)
-            if (fabs(M[i][k]) > fabs(M[piv][k]))
+            if (MKC_FABS_C(M[i][k]) > MKC_FABS_C(M[piv][k]))
                 piv = i;
-        if (M[piv][k] == 0.0 || !isfinite(M[piv][k]))
+        if (M[piv][k] == CR(0.0) || !isfinite(M[piv][k]))
             return MKC_SINGULAR;
         if (piv != k) {
             for (j = 0; j < 4; j++) {
-                double t = M[k][j];
+                mkc_creal t = M[k][j];
                 M[k][j] = M[piv][j];
                 M[piv][j] = t;
             }
         }
-        r = 1.0 / M[k][k];
+        r = CR(1.0) / M[k][k];
         for (i = k + 1; i < 3; i++) {
-            double l = M[i][k] * r;
+            mkc_creal l = M[i][k] * r;
             for (j = k; j < 4; j++)
                 M[i][j] -= l * M[k][j];
         }
     }
     for (i = 2; i >= 0; i--) {
-        double s = M[i][3];
+        mkc_creal s = M[i][3];
         for (j = i + 1; j < 3; j++)
             s -= M[i][j] * x[j];
         x[i] = s / M[i][i];

@@ -76,9 +76,9 @@ static void set_normalisation(mkc_mag_t *g, const mkc_real *c0, mkc_real s0, con
     mkc__recount_cells(g, count);
     if (restart) {
         /* (c0, s0) is the window's trimmed sphere fit: start from that sphere, the unit sphere here */
-        static const double origin[3] = {0.0, 0.0, 0.0};
+        static const mkc_creal origin[3] = {CR(0.0), CR(0.0), CR(0.0)};
         mkc_real unit[9];
-        mkc__sphere_theta(origin, 1.0, unit);
+        mkc__sphere_theta(origin, CR(1.0), unit);
         mkc__restart_at(&g->core, unit);
         mkc__estep_window(&g->core);
         mkc__rebuild(&g->core);
@@ -93,17 +93,17 @@ static void set_normalisation(mkc_mag_t *g, const mkc_real *c0, mkc_real s0, con
  * quadric in the new coordinates: (m - b)^T M (m - b) = 1 -> A' = F^2 M, B' = 0. */
 static void maybe_renormalise(mkc_mag_t *g, const mkc__geometry *geom, const mkc_real *b, mkc_real F)
 {
-    double d0 = (double)(b[0] - g->c0[0]), d1 = (double)(b[1] - g->c0[1]), d2 = (double)(b[2] - g->c0[2]);
-    double dist = sqrt(d0 * d0 + d1 * d1 + d2 * d2), F2 = (double)F * (double)F;
+    mkc_creal d0 = (mkc_creal)(b[0] - g->c0[0]), d1 = (mkc_creal)(b[1] - g->c0[1]), d2 = (mkc_creal)(b[2] - g->c0[2]);
+    mkc_creal dist = MKC_SQRT_C(d0 * d0 + d1 * d1 + d2 * d2), F2 = (mkc_creal)F * (mkc_creal)F;
     mkc_real theta[9];
-    if (!(dist > 0.1 * (double)g->s0 || fabs((double)F / (double)g->s0 - 1.0) > 0.1))
+    if (!(dist > CR(0.1) * (mkc_creal)g->s0 || MKC_FABS_C((mkc_creal)F / (mkc_creal)g->s0 - CR(1.0)) > CR(0.1)))
         return;
     theta[0] = (mkc_real)(F2 * geom->M[0][0]);
     theta[1] = (mkc_real)(F2 * geom->M[1][1]);
     theta[2] = (mkc_real)(F2 * geom->M[2][2]);
-    theta[3] = (mkc_real)(2.0 * (F2 * geom->M[0][1]));
-    theta[4] = (mkc_real)(2.0 * (F2 * geom->M[0][2]));
-    theta[5] = (mkc_real)(2.0 * (F2 * geom->M[1][2]));
+    theta[3] = (mkc_real)(CR(2.0) * (F2 * geom->M[0][1]));
+    theta[4] = (mkc_real)(CR(2.0) * (F2 * geom->M[0][2]));
+    theta[5] = (mkc_real)(CR(2.0) * (F2 * geom->M[1][2]));
     theta[6] = theta[7] = theta[8] = RC(0.0);
     set_normalisation(g, b, F, theta, 0);
 }
@@ -164,14 +164,14 @@ static int try_final_normalisation(mkc_mag_t *g, int count, int64_t seen, int64_
  * calibration confirmed last (within the disagreement tolerance): steady streams pay nothing. */
 static int needs_confirmation(const mkc_mag_t *g, const mkc_real *b, mkc_real F)
 {
-    double d0, d1, d2, tol;
+    mkc_creal d0, d1, d2, tol;
     if (!g->has_confirmed)
         return 1;
-    tol = (double)g->rules.max_disagreement_rel * fabs((double)F);
-    d0 = (double)(b[0] - g->confirmed_b[0]);
-    d1 = (double)(b[1] - g->confirmed_b[1]);
-    d2 = (double)(b[2] - g->confirmed_b[2]);
-    return !(sqrt(d0 * d0 + d1 * d1 + d2 * d2) <= tol && fabs((double)(F - g->confirmed_F)) <= tol);
+    tol = (mkc_creal)g->rules.max_disagreement_rel * MKC_FABS_C((mkc_creal)F);
+    d0 = (mkc_creal)(b[0] - g->confirmed_b[0]);
+    d1 = (mkc_creal)(b[1] - g->confirmed_b[1]);
+    d2 = (mkc_creal)(b[2] - g->confirmed_b[2]);
+    return !(MKC_SQRT_C(d0 * d0 + d1 * d1 + d2 * d2) <= tol && MKC_FABS_C((mkc_creal)(F - g->confirmed_F)) <= tol);
 }
 
 static void copy_bytes(unsigned char *dst, const unsigned char *src, size_t n)
@@ -185,13 +185,13 @@ static void copy_bytes(unsigned char *dst, const unsigned char *src, size_t n)
  * Returns the disagreement max(|b_cold - b|, |F_cold - F|) (HUGE_VAL when the cold start gives no
  * ellipsoid). If it agrees, the warm estimate is restored (nothing changes); otherwise the stream
  * continues from the cold start and *have_cold says whether cold_* hold its calibration. */
-static double cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b, mkc_real F, int *have_cold,
-                                      mkc_real *bc, mkc_real Sc[3][3], mkc_real *Fc, mkc_real *qc)
+static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b, mkc_real F, int *have_cold,
+                                         mkc_real *bc, mkc_real Sc[3][3], mkc_real *Fc, mkc_real *qc)
 {
     unsigned char *state = (unsigned char *)(void *)&g->core + offsetof(mkc_core_t, C);
     mkc__geometry geom;
     mkc_mag_reason unused;
-    double bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF, sc[3];
+    mkc_creal bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF, sc[3];
     mkc_real sb[3], sF = RC(0.0), theta0[9];
     int j, k, have_sphere = 0;
     *have_cold = 0;
@@ -200,24 +200,24 @@ static double cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b
      * from WLS only when the window gives no sphere around the features' origin */
     if (count >= 8 && mkc__robust_sphere_fit(g, count, sb, &sF)) {
         for (j = 0; j < 3; j++)
-            sc[j] = (double)((sb[j] - g->c0[j]) / g->s0);
-        have_sphere = mkc__sphere_theta(sc, (double)(sF / g->s0), theta0);
+            sc[j] = (mkc_creal)((sb[j] - g->c0[j]) / g->s0);
+        have_sphere = mkc__sphere_theta(sc, (mkc_creal)(sF / g->s0), theta0);
     }
     if (have_sphere)
         mkc__cold_start_at(&g->core, MKC_COLD_START_ROUNDS, theta0);
     else
         mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
     if (mkc__geometry_from_theta(g->core.theta, &geom, &unused) != MKC_REASON_NONE)
-        return HUGE_VAL;
+        return CR(HUGE_VAL);
     mkc__raw_geometry(&geom, g->c0, g->s0);
     mkc__calibration_from_geometry(&geom, bd, Sd, &Fd);
-    e0 = bd[0] - (double)b[0];
-    e1 = bd[1] - (double)b[1];
-    e2 = bd[2] - (double)b[2];
-    dis = sqrt(e0 * e0 + e1 * e1 + e2 * e2);
-    dF = fabs(Fd - (double)F);
+    e0 = bd[0] - (mkc_creal)b[0];
+    e1 = bd[1] - (mkc_creal)b[1];
+    e2 = bd[2] - (mkc_creal)b[2];
+    dis = MKC_SQRT_C(e0 * e0 + e1 * e1 + e2 * e2);
+    dF = MKC_FABS_C(Fd - (mkc_creal)F);
     dis = dF > dis ? dF : dis;
-    if (dis <= (double)g->rules.max_disagreement_rel * fabs((double)F)) {
+    if (dis <= (mkc_creal)g->rules.max_disagreement_rel * MKC_FABS_C((mkc_creal)F)) {
         copy_bytes(state, g->saved, MKC_CORE_SAVED_BYTES);
         return dis;
     }
@@ -238,7 +238,7 @@ static void checkpoint(mkc_mag_t *g)
     int count = (int)g->core.counters.count, why, j, k;
     mkc__geometry geom;
     mkc_mag_reason reason;
-    double bd[3], Sd[3][3], Fd;
+    mkc_creal bd[3], Sd[3][3], Fd;
     mkc_real b[3], S[3][3], F, q[MKC_QUALITY], sigma, d;
     mkc_mag_calibration *cal;
     uint32_t fails;
@@ -283,13 +283,13 @@ static void checkpoint(mkc_mag_t *g)
     }
     F = (mkc_real)Fd;
     mkc__quality_figures(g, count, b, (const mkc_real(*)[3])S, F, mkc__weighted_condition(g, count), q);
-    fails = mkc__acceptance_check(g, q, F, -1.0, &reason);
+    fails = mkc__acceptance_check(g, q, F, -CR(1.0), &reason);
     if (!fails && needs_confirmation(g, b, F)) {
         /* A warm-started estimate can lock onto a wrong mode that it reinforces (the samples it
          * down-weights are the ones that would correct it); a cold start cannot inherit that. */
         mkc_real bc[3], Sc[3][3], Fc = RC(0.0), qc[MKC_QUALITY];
         int have_cold;
-        double dis = cold_start_disagreement(g, count, b, F, &have_cold, bc, Sc, &Fc, qc);
+        mkc_creal dis = cold_start_disagreement(g, count, b, F, &have_cold, bc, Sc, &Fc, qc);
         fails = mkc__acceptance_check(g, q, F, dis, &reason);
         if (!fails) {
             for (j = 0; j < 3; j++)

@@ -15,6 +15,24 @@
 #include "mkc.h"
 #include "mkc_tables.h"
 
+/* Arithmetic type of the checkpoint code (sphere fit, geometry, eigen-decompositions, quality,
+ * acceptance; once per K samples): double, unless a float build sets -DMKC_CHECKPOINT_DOUBLE=0
+ * (mkc_config.h). */
+#if defined(MKC_USE_FLOAT) && !MKC_CHECKPOINT_DOUBLE
+#define MKC_CREAL_FLOAT 1
+typedef float mkc_creal;
+#define MKC_SQRT_C(x) sqrtf(x)
+#define MKC_FABS_C(x) fabsf(x)
+#define MKC_POW_C(x, y) powf(x, y)
+#else
+#define MKC_CREAL_FLOAT 0
+typedef double mkc_creal;
+#define MKC_SQRT_C(x) sqrt(x)
+#define MKC_FABS_C(x) fabs(x)
+#define MKC_POW_C(x, y) pow(x, y)
+#endif
+#define CR(x) ((mkc_creal)(x))
+
 #define RC(x) ((mkc_real)(x))
 #define AC(x) ((mkc_acc)(x))
 #define EC(x) ((mkc_ereal)(x))
@@ -71,6 +89,47 @@ static inline float mkc__max_f(float a, float b) { return (a != a) ? a : ((b != 
 #define mkc__min_a mkc__min_f
 #endif
 
+#if !MKC_ESTEP_DOUBLE
+/* The single-precision E-step (normaliser.c, estep.c). Its objective is flat in sigma: the gradient
+ * in sigma is a difference of terms that each cancel to O(1/sigma^2) when written as the double
+ * build writes them, which in float leaves no correct digit for sigma >~ 30. Here every such term
+ * is a series without cancellation, and the sums are compensated (Kahan), so the float objective
+ * follows the double one to a few ulps. */
+
+/* (1 - h, 1 - (1 + q) h, h) with h = e^-q, each to a few ulps relative. Below q = 1/2 (where
+ * 1 - h and 1 - (1 + q) h cancel) the Taylor series
+ *   1 - h          = sum_{k>=1} (-1)^(k+1) q^k / k!        (through q^8)
+ *   1 - (1 + q) h  = sum_{k>=2} (-1)^k (k - 1) q^k / k!    (through q^9)
+ * (truncation < 3e-8 relative) and no libm call; above it one expf. */
+static inline void mkc__omh_terms_f(float q, float *omh, float *omh_qh, float *h)
+{
+    if (q < 0.5f) {
+        float o = q * (1.0f - q * (0.5f - q * (1.0f / 6.0f - q * (1.0f / 24.0f - q * (1.0f / 120.0f
+                  - q * (1.0f / 720.0f - q * (1.0f / 5040.0f - q * (1.0f / 40320.0f))))))));
+        *omh = o;
+        *omh_qh = q * q * (0.5f - q * (1.0f / 3.0f - q * (0.125f - q * (1.0f / 30.0f - q * (1.0f / 144.0f
+                  - q * (1.0f / 840.0f - q * (1.0f / 5760.0f - q * (1.0f / 45360.0f))))))));
+        *h = 1.0f - o;
+        return;
+    }
+    *h = expf(-q);
+    *omh = 1.0f - *h;
+    *omh_qh = *omh - q * *h;
+}
+
+#define MKC_FLT_EPS 1.1920929e-7f     /* FLT_EPSILON */
+#define MKC_GRAD_NOISE_ULPS 16.0f     /* the float E-step gradient's rounding noise, in ulps of its terms */
+
+/* Kahan's compensated sum: *s += x with the rounding error carried in *c. */
+static inline void mkc__kahan_add_f(float *s, float *c, float x)
+{
+    float y = x - *c;
+    float t = *s + y;
+    *c = (t - *s) - y;
+    *s = t;
+}
+#endif
+
 /* ---- normaliser.c (kernels/normaliser.py) ---- */
 mkc_ereal mkc__cut_point(mkc_ereal sigma);
 /* log Z(sigma, A); *d_sigma, *d_A: its derivatives. */
@@ -82,10 +141,10 @@ int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, 
 /* Cyclic Jacobi eigen-decomposition of a symmetric k x k matrix (k <= 9), stride 9; a is destroyed.
  * Eigenvalues ascending into w; eigenvectors as columns of V (if V != NULL). Returns the sweeps, or
  * -1 if it did not converge within the bound. */
-int mkc__jacobi_eigen(double a[9][9], int k, double *w, double V[9][9]);
+int mkc__jacobi_eigen(mkc_creal a[9][9], int k, mkc_creal *w, mkc_creal V[9][9]);
 /* Solve the 3x3 system A x = b by Gaussian elimination with partial pivoting; MKC_SINGULAR if a
  * pivot is 0 (numpy.linalg.solve raises LinAlgError "Singular matrix" then). */
-int mkc__solve3(const double A[3][3], const double *b, double *x);
+int mkc__solve3(const mkc_creal A[3][3], const mkc_creal *b, mkc_creal *x);
 
 /* ---- estep.c (kernels/estep.py) ---- */
 mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, int n, mkc_ereal a, mkc_ereal pull,
@@ -128,25 +187,25 @@ int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz);
 
 /* ---- sphere.c (calib/ellipsoid.py sphere_fit, robust_sphere_fit) ---- */
 int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F);
-int mkc__sphere_theta(const double *c, double r, mkc_real *theta);
+int mkc__sphere_theta(const mkc_creal *c, mkc_creal r, mkc_real *theta);
 mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real *b);
 
 /* ---- ellipsoid.c (calib/ellipsoid.py geometry_from_theta, raw_geometry, calibration_from_geometry) ---- */
 typedef struct mkc__geometry {
-    double centre[3];
-    double M[3][3];
+    mkc_creal centre[3];
+    mkc_creal M[3][3];
 } mkc__geometry;
 /* Returns MKC_REASON_NONE or the MKC_REASON_* why theta is not an ellipsoid (values into reason). */
 int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_reason *reason);
 void mkc__raw_geometry(mkc__geometry *g, const mkc_real *c0, mkc_real s0);
-void mkc__calibration_from_geometry(const mkc__geometry *g, double b[3], double S[3][3], double *F);
+void mkc__calibration_from_geometry(const mkc__geometry *g, mkc_creal b[3], mkc_creal S[3][3], mkc_creal *F);
 
 /* ---- quality.c (calib/quality.py, calib/fit.py weighted_condition, calib/acceptance.py) ---- */
 void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
                           mkc_real condition, mkc_real *q);
 mkc_real mkc__weighted_condition(mkc_mag_t *g, int count);
 /* disagreement < 0: not checked (the reference's disagreement=None) */
-uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, double disagreement,
+uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, mkc_creal disagreement,
                                mkc_mag_reason *reason);
 
 /* ---- confidence.c (calib/confidence.py supports_switch, calib/quality.py sphere_spread) ---- */

@@ -65,6 +65,7 @@
 /* Gauss-Legendre, 10 nodes mapped to [0, 1] (kernels/quadrature.py) */
 #define MKC_GL_ORDER 10
 #ifdef MKC_TABLES_WANT_GL /* only the normaliser's translation unit holds the table */
+#if MKC_ESTEP_DOUBLE
 static const double mkc_gl_nodes[MKC_GL_ORDER] = {
     0x1.ab83f3aa1a500p-7 /* 0.013046735741414128 */,
     0x1.1459a858d3434p-4 /* 0.06746831665550773 */,
@@ -89,6 +90,32 @@ static const double mkc_gl_weights[MKC_GL_ORDER] = {
     0x1.32138c878efdep-4 /* 0.0747256745752902 */,
     0x1.1115f8b62dc1fp-5 /* 0.03333567215434407 */
 };
+#else /* a single-precision E-step: the same values rounded to float (no conversion at run time) */
+static const float mkc_gl_nodes[MKC_GL_ORDER] = {
+    0x1.ab83f40000000p-7f,
+    0x1.1459a80000000p-4f,
+    0x1.4848dc0000000p-3f,
+    0x1.221a000000000p-2f,
+    0x1.b3c6be0000000p-2f,
+    0x1.261ca00000000p-1f,
+    0x1.6ef3000000000p-1f,
+    0x1.adedca0000000p-1f,
+    0x1.dd74ca0000000p-1f,
+    0x1.f951f00000000p-1f
+};
+static const float mkc_gl_weights[MKC_GL_ORDER] = {
+    0x1.1115f80000000p-5f,
+    0x1.32138c0000000p-4f,
+    0x1.c0b05a0000000p-4f,
+    0x1.13baa80000000p-3f,
+    0x1.2e9de80000000p-3f,
+    0x1.2e9de80000000p-3f,
+    0x1.13baa80000000p-3f,
+    0x1.c0b05a0000000p-4f,
+    0x1.32138c0000000p-4f,
+    0x1.1115f80000000p-5f
+};
+#endif
 #endif
 
 /* direction cells (kernels/magwindow.py) */

@@ -6,7 +6,9 @@
  * is composite Gauss-Legendre (10 nodes, the generated table) on panels sized to g's local scale,
  * about 6-15 panels for sigma in [0.05, 1e3]: a bounded cost (the loop cannot run away: each panel
  * advances u by at least min(1.5 min(1, sigma), 2 sigma, 10 sigma^2 / u) > 0 up to u_c). Per node
- * three libm calls: h = exp(-q) (or the series of 1 - h for small q), f, and g's expm1.
+ * three libm calls: h = exp(-q) (or the series of 1 - h for small q), f, and g's expm1. A
+ * single-precision E-step uses the float table, longer series (mkc__omh_terms_f), an integrand for
+ * dZ/dsigma without cancellation and compensated sums.
  */
 #define MKC_TABLES_WANT_GL
 #include "mkc_internal.h"
@@ -27,6 +29,7 @@ mkc_ereal mkc__cut_point(mkc_ereal sigma)
     return sigma * MKC_SQRT_E(EC(-2.0) * MKC_LOG_E(h_c));
 }
 
+#if MKC_ESTEP_DOUBLE
 /* (1 - h, h) with h = e^-q from at most one exp: omh = q - q^2/2 + q^3/6 - q^4/24 + q^5/120 for
  * q < 1e-3, where 1 - h would cancel (f = exp(-sigma^2 omh) needs omh to a few ulps relative). */
 static void omh_h(mkc_ereal q, mkc_ereal *omh, mkc_ereal *h)
@@ -40,6 +43,7 @@ static void omh_h(mkc_ereal q, mkc_ereal *omh, mkc_ereal *h)
     *h = MKC_EXP_E(-q);
     *omh = EC(1.0) - *h;
 }
+#endif
 
 /* Head (|u| < 3 max(1, sigma)): width ~1 (big sigma) or ~sigma (small sigma) bump. Tail: g ~
  * exp(-u^2/(2 sigma^2)), whose log changes by u w / sigma^2 over a panel. */
@@ -58,10 +62,28 @@ mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_si
     mkc_ereal Ig = EC(0.0), Ids = EC(0.0), u = EC(0.0);
     mkc_ereal Z, dZ_ds, fA, dZ_dA;
     int j;
+#if !MKC_ESTEP_DOUBLE
+    mkc_ereal cIg = EC(0.0), cIds = EC(0.0);      /* Kahan compensations */
+#endif
     while (u < uc) {
         mkc_ereal w = panel_width(u, sigma);
         mkc_ereal ub = mkc__min_e(u + w, uc);
         mkc_ereal span = ub - u;
+#if !MKC_ESTEP_DOUBLE
+        /* d/dsigma of the integrand, 2 sigma (f h - g) + f h x^2 / sigma, is (g = f - floor,
+         * x^2 / sigma = 2 sigma q) 2 sigma (floor - f (1 - h - q h)): the two O(x^2 / sigma) terms
+         * cancel analytically instead of in float. */
+        for (j = 0; j < MKC_GL_ORDER; j++) {
+            mkc_ereal x = u + span * mkc_gl_nodes[j];
+            mkc_ereal q = x * x / (EC(2.0) * s2);
+            mkc_ereal omh, omh_qh, h, f, g, wj = span * mkc_gl_weights[j];
+            mkc__omh_terms_f(q, &omh, &omh_qh, &h);
+            f = MKC_EXP_E(-s2 * omh);
+            g = f * (-MKC_EXPM1_E(-s2 * h));
+            mkc__kahan_add_f(&Ig, &cIg, wj * g);
+            mkc__kahan_add_f(&Ids, &cIds, wj * (EC(2.0) * sigma * (floor_ - f * omh_qh)));
+        }
+#else
         for (j = 0; j < MKC_GL_ORDER; j++) {
             mkc_ereal x = u + span * EC(mkc_gl_nodes[j]);
             mkc_ereal q = x * x / (EC(2.0) * s2);
@@ -73,6 +95,7 @@ mkc_ereal mkc__log_normaliser_grad(mkc_ereal sigma, mkc_ereal A, mkc_ereal *d_si
             Ig += wj * g;
             Ids += wj * (EC(2.0) * sigma * (f * h - g) + f * h * x * x / sigma);
         }
+#endif
         u = ub;
     }
     Z = EC(2.0) * (A * floor_ + Ig);

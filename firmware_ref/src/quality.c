@@ -79,48 +79,48 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
  * (numpy: the 2-norm condition by SVD, the same number for this symmetric matrix). */
 mkc_real mkc__weighted_condition(mkc_mag_t *g, int count)
 {
-    double G[9][9], lam[9], dg[9], lo, hi;
+    mkc_creal G[9][9], lam[9], dg[9], lo, hi;
     mkc_real xk[MKC_N];
     int k, p, q, n = 9;
     mkc_real d = g->core.d[0];
     for (p = 0; p < n; p++)
         for (q = 0; q < n; q++)
-            G[p][q] = 0.0;
+            G[p][q] = CR(0.0);
     for (k = 0; k < count; k++) {
         mkc_real wk = g->core.C[k][0] * d * d;
-        double sw = sqrt((double)mkc__max_r(wk, RC(0.0)));
+        mkc_creal sw = MKC_SQRT_C((mkc_creal)mkc__max_r(wk, RC(0.0)));
         const mkc_real *x = mkc__row(&g->core, k, 0, xk);
-        double xw[9];
+        mkc_creal xw[9];
         for (p = 0; p < n; p++)
-            xw[p] = (double)x[p] * sw;
+            xw[p] = (mkc_creal)x[p] * sw;
         for (p = 0; p < n; p++)
             for (q = 0; q <= p; q++)
                 G[p][q] += xw[p] * xw[q];
     }
     for (p = 0; p < n; p++) {
-        dg[p] = sqrt(G[p][p]);
-        if (dg[p] == 0.0)
+        dg[p] = MKC_SQRT_C(G[p][p]);
+        if (dg[p] == CR(0.0))
             return RC(HUGE_VAL);
     }
     for (p = 0; p < n; p++)
         for (q = 0; q <= p; q++)
             G[p][q] = G[q][p] = G[p][q] / (dg[p] * dg[q]);
     mkc__jacobi_eigen(G, n, lam, NULL);
-    lo = HUGE_VAL;
-    hi = 0.0;
+    lo = CR(HUGE_VAL);
+    hi = CR(0.0);
     for (p = 0; p < n; p++) {
-        double a = fabs(lam[p]);
+        mkc_creal a = MKC_FABS_C(lam[p]);
         lo = a < lo ? a : lo;
         hi = a > hi ? a : hi;
     }
-    if (!(lo > 0.0))
+    if (!(lo > CR(0.0)))
         return RC(HUGE_VAL);
     return (mkc_real)(hi / lo);
 }
 
 /* AcceptanceRules.check: the failed criteria as bits (0: accepted); reason->v = coverage,
  * condition, outlier fraction, residual / field, field, disagreement. */
-uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, double disagreement,
+uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, mkc_creal disagreement,
                                mkc_mag_reason *reason)
 {
     const mkc_mag_rules *R = &g->rules;
@@ -141,7 +141,7 @@ uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real f
     } else if (!(isfinite(field) && field > RC(0.0))) {
         fails |= MKC_FAIL_FIELD_NONPOSITIVE;
     }
-    if (disagreement >= 0.0 && !(disagreement <= (double)R->max_disagreement_rel * fabs((double)field)))
+    if (disagreement >= CR(0.0) && !(disagreement <= (mkc_creal)R->max_disagreement_rel * MKC_FABS_C((mkc_creal)field)))
         fails |= MKC_FAIL_DISAGREEMENT;
     reason->code = fails ? MKC_REASON_REJECTED : MKC_REASON_NONE;
     reason->fails = fails;

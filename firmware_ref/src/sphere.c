@@ -22,33 +22,33 @@ static int selected(const mkc_mag_t *g, const sel *m, int k)
     return !m->use_mask || MKC_FABS_R(g->core.ebuf[k] - m->med) <= m->thr;
 }
 
-/* Solve the symmetric positive definite 4x4 N x = r by Cholesky (double); 0 if not PD. */
-static int chol4(const double N[4][4], const double *r, double *x)
+/* Solve the symmetric positive definite 4x4 N x = r by Cholesky (mkc_creal); 0 if not PD. */
+static int chol4(const mkc_creal N[4][4], const mkc_creal *r, mkc_creal *x)
 {
-    double L[4][4];
+    mkc_creal L[4][4];
     int i, j, k;
     for (j = 0; j < 4; j++) {
-        double s = N[j][j];
+        mkc_creal s = N[j][j];
         for (k = 0; k < j; k++)
             s -= L[j][k] * L[j][k];
-        if (!(s > 0.0) || !isfinite(s))
+        if (!(s > CR(0.0)) || !isfinite(s))
             return 0;
-        L[j][j] = sqrt(s);
+        L[j][j] = MKC_SQRT_C(s);
         for (i = j + 1; i < 4; i++) {
-            double t = N[i][j];
+            mkc_creal t = N[i][j];
             for (k = 0; k < j; k++)
                 t -= L[i][k] * L[j][k];
             L[i][j] = t / L[j][j];
         }
     }
     for (i = 0; i < 4; i++) {
-        double s = r[i];
+        mkc_creal s = r[i];
         for (k = 0; k < i; k++)
             s -= L[i][k] * x[k];
         x[i] = s / L[i][i];
     }
     for (i = 3; i >= 0; i--) {
-        double s = x[i];
+        mkc_creal s = x[i];
         for (k = i + 1; k < 4; k++)
             s -= L[k][i] * x[k];
         x[i] = s / L[i][i];
@@ -60,7 +60,7 @@ static int chol4(const double N[4][4], const double *r, double *x)
 static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mkc_real *F_out)
 {
     mkc_real c[3] = {RC(0.0), RC(0.0), RC(0.0)}, ref[3], scale, F2, bb[3], kk;
-    double N[4][4], rhs[4], x[4] = {0.0, 0.0, 0.0, 0.0}, dx[4];
+    mkc_creal N[4][4], rhs[4], x[4] = {CR(0.0), CR(0.0), CR(0.0), CR(0.0)}, dx[4];
     int k, j, p, q, it, nsel = 0;
     /* c = ref + (mag - ref).mean(axis=0), ref the first selected row: summing raw values far from
      * the origin directly loses ~0.1 count in float; numpy reduces axis 0 row by row */
@@ -95,20 +95,20 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
      * refinement passes x += N^-1 G^T (y - G x) */
     for (p = 0; p < 4; p++)
         for (q = 0; q < 4; q++)
-            N[p][q] = 0.0;
+            N[p][q] = CR(0.0);
     for (it = 0; it < 3; it++) {
         for (p = 0; p < 4; p++)
-            rhs[p] = 0.0;
+            rhs[p] = CR(0.0);
         for (k = 0; k < count; k++) {
-            double u[3], row[4], y, r;
+            mkc_creal u[3], row[4], y, r;
             if (!selected(g, m, k))
                 continue;
             for (j = 0; j < 3; j++)
-                u[j] = (double)((g->raw[k][j] - c[j]) / scale);
-            row[0] = 2.0 * u[0];
-            row[1] = 2.0 * u[1];
-            row[2] = 2.0 * u[2];
-            row[3] = 1.0;
+                u[j] = (mkc_creal)((g->raw[k][j] - c[j]) / scale);
+            row[0] = CR(2.0) * u[0];
+            row[1] = CR(2.0) * u[1];
+            row[2] = CR(2.0) * u[2];
+            row[3] = CR(1.0);
             y = u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
             r = y - (row[0] * x[0] + row[1] * x[1] + row[2] * x[2] + row[3] * x[3]);
             for (p = 0; p < 4; p++) {
@@ -118,7 +118,7 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
                         N[p][q] += row[p] * row[q];
             }
         }
-        if (!chol4((const double(*)[4])N, rhs, dx))
+        if (!chol4((const mkc_creal(*)[4])N, rhs, dx))
             return 0;
         for (p = 0; p < 4; p++)
             x[p] += dx[p];
@@ -203,17 +203,17 @@ mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real 
 
 /* calib/ellipsoid.py sphere_theta: theta of eq. (36)-(37) for the sphere |m' - c| = r in the
  * features' coordinates, |m'|^2 - 2 c^T m' = k divided by k = r^2 - |c|^2; 0 when k <= 0. */
-int mkc__sphere_theta(const double *c, double r, mkc_real *theta)
+int mkc__sphere_theta(const mkc_creal *c, mkc_creal r, mkc_real *theta)
 {
-    double k = r * r - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
-    if (!(isfinite(k) && k > 0.0))
+    mkc_creal k = r * r - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
+    if (!(isfinite(k) && k > CR(0.0)))
         return 0;
-    theta[0] = (mkc_real)(1.0 / k);
-    theta[1] = (mkc_real)(1.0 / k);
-    theta[2] = (mkc_real)(1.0 / k);
+    theta[0] = (mkc_real)(CR(1.0) / k);
+    theta[1] = (mkc_real)(CR(1.0) / k);
+    theta[2] = (mkc_real)(CR(1.0) / k);
     theta[3] = theta[4] = theta[5] = RC(0.0);
-    theta[6] = (mkc_real)(-2.0 * c[0] / k);
-    theta[7] = (mkc_real)(-2.0 * c[1] / k);
-    theta[8] = (mkc_real)(-2.0 * c[2] / k);
+    theta[6] = (mkc_real)(-CR(2.0) * c[0] / k);
+    theta[7] = (mkc_real)(-CR(2.0) * c[1] / k);
+    theta[8] = (mkc_real)(-CR(2.0) * c[2] / k);
     return 1;
 }
