@@ -2,9 +2,8 @@
  * checkpoint, on the emulated Cortex-M (semihost.c) or the host (stdio_io.c); the two outputs are
  * compared by tests/test_cortex_m.py.
  *
- * Input mkc_in.bin (little-endian): 8 int32 (MKC_IN_MAGIC, MKC_IO_VERSION, window, estep_every,
- * policy (MKC_POLICY_*), unit_ut, init_samples, T), then T samples of 3 doubles (mx, my, mz), read
- * in blocks (the stream need not fit the board's memory) and fed as mkc_real like mkc_replay does.
+ * Input mkc_in.bin (replay_input.h: a header with the configuration and T, then T samples of 3
+ * doubles), fed as mkc_real like mkc_replay does.
  * Output mkc_out.bin: one record of MKC_OUT_RECORD doubles per checkpoint (layout at the enum), then a
  * final record (samples_seen = -1) with the counts and the accepted calibration. Exit status 0, or
  * 1 for unreadable input, 2 for a configuration the library refuses.
@@ -13,10 +12,7 @@
 
 #include "mkc.h"
 #include "mkc_target_io.h"
-
-#define MKC_IN_MAGIC 0x49434B4D   /* "MKCI" */
-#define MKC_IO_VERSION 1
-#define BLOCK 64                  /* samples per read */
+#include "replay_input.h"
 
 /* record layout (doubles) */
 enum {
@@ -76,33 +72,17 @@ static void on_checkpoint(void *user, const mkc_mag_t *g)
     write_record((sink *)user, rec);
 }
 
-static int32_t le32(const unsigned char *p)
-{
-    return (int32_t)((uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24);
-}
-
 int main(void)
 {
-    unsigned char head[32];
-    double block[3 * BLOCK], rec[MKC_OUT_RECORD] = {0.0};
+    double block[3 * MKC_IN_BLOCK], rec[MKC_OUT_RECORD] = {0.0};
     mkc_mag_config cfg;
     const mkc_mag_calibration *acc;
     int64_t samples, bad_frames;
     int32_t T, done = 0;
     sink out = {-1, 0};
-    int in = mkc_io_open("mkc_in.bin", 0);
-    if (in < 0 || mkc_io_read(in, head, sizeof head) != (long)sizeof head || le32(head) != MKC_IN_MAGIC
-        || le32(head + 4) != MKC_IO_VERSION) {
-        mkc_io_console("mkc target replay: cannot read mkc_in.bin (or not a version-1 input)\n");
+    int in = mkc_replay_open_input(&cfg, &T);
+    if (in < 0)
         return 1;
-    }
-    mkc_mag_config_default(&cfg);
-    cfg.stream.window = le32(head + 8);
-    cfg.stream.estep_every = le32(head + 12);
-    cfg.policy = le32(head + 16);
-    cfg.unit_ut = le32(head + 20);
-    cfg.init_samples = le32(head + 24);
-    T = le32(head + 28);
     if (mkc_mag_init(&cal, &cfg) != MKC_OK) {
         mkc_io_console("mkc target replay: the library refuses the configuration\n");
         return 2;
@@ -114,11 +94,9 @@ int main(void)
     }
     mkc_mag_set_listener(&cal, on_checkpoint, &out);
     while (done < T) {
-        int32_t n = T - done < BLOCK ? T - done : BLOCK, k;
-        if (mkc_io_read(in, block, (size_t)n * 3 * sizeof(double)) != (long)((size_t)n * 3 * sizeof(double))) {
-            mkc_io_console("mkc target replay: mkc_in.bin is shorter than its header says\n");
+        int32_t n = T - done < MKC_IN_BLOCK ? T - done : MKC_IN_BLOCK, k;
+        if (mkc_replay_read_block(in, block, n) != 0)
             return 1;
-        }
         for (k = 0; k < n; k++)
             mkc_mag_push(&cal, (mkc_real)block[3 * k], (mkc_real)block[3 * k + 1], (mkc_real)block[3 * k + 2]);
         done += n;
