@@ -4,6 +4,8 @@
   around one point covers every direction around itself);
 - a passing trial replaces the accepted calibration only when the window supports it as the better
   fit (calib/confidence.py), so a steady stream keeps one calibration instead of the latest window's;
+- the pooled calibration (the default) averages the agreeing trials, so the final answer does not
+  depend on where the stream started or on its rate beyond noise;
 - a real change of the hard iron is followed;
 - the reported uncertainty matches the scatter of repeated fits when samples are independent.
 """
@@ -47,6 +49,41 @@ def test_a_steady_stream_keeps_its_calibration_instead_of_each_window():
     assert paired.switches < 0.25 * passing
     for cal in (paired, latest):
         assert np.linalg.norm(cal.accepted.hard_iron - s.hard_iron) < 0.3
+
+
+def _replays(raw):
+    """The same recording whole, without its first 50 / 100 samples, and at half rate (even, odd)."""
+    return [raw, raw[50:], raw[100:], raw[::2], raw[1::2]]
+
+
+def _final_spread(raw, **kw):
+    finals = [feed(MagCalibrator(window=256, estep_every=32, **kw), r).accepted.hard_iron for r in _replays(raw)]
+    return max(np.linalg.norm(a - b) for a in finals for b in finals), finals
+
+
+def test_the_pooled_final_does_not_depend_on_the_start_or_the_rate():
+    """Measured: spread of the 5 replays' finals 0.09 uT pooled against 0.38 uT when the last
+    supported window decides (seed 21); 0.09 against 0.13 (seed 22)."""
+    s = synthetic_mag(seed=21, N=12000, burst_fraction=0.1)
+    pooled, finals = _final_spread(s.raw)
+    paired, _ = _final_spread(s.raw, switching="paired")
+    assert pooled < 0.12 and paired > 2 * pooled
+    assert max(np.linalg.norm(b - s.hard_iron) for b in finals) < 0.15
+    s = synthetic_mag(seed=22, N=12000, burst_fraction=0.1)
+    pooled, finals = _final_spread(s.raw)
+    assert pooled < 0.12 and max(np.linalg.norm(b - s.hard_iron) for b in finals) < 0.15
+
+
+def test_a_young_pool_follows_the_better_trial_and_a_grown_one_averages():
+    """The first windows of a stream (fitted before the motion covered much) are replaced while the
+    pool holds less than a window's worth of trials; afterwards trials join it."""
+    s = synthetic_mag(seed=12, N=6000, burst_fraction=0.1)
+    cal = feed(MagCalibrator(window=256, estep_every=32), s.raw)
+    per_window = 256 // 32
+    assert cal.pool_n > 4 * per_window                       # most passing trials joined one pool
+    assert 1 <= cal.switches <= 6                            # first acceptance plus few restarts
+    mean_b = cal.pool_mean[:3]
+    assert np.array_equal(cal.accepted.hard_iron, mean_b)    # the accepted calibration is the pool's mean
 
 
 def test_a_new_hard_iron_is_followed():

@@ -14,7 +14,9 @@ per replay, for the ACCEPTED calibration:
     the distortion's true hard iron ("truth", which includes the dataset's own residual offset);
   - heading: the RMS heading error against the motion capture (deg), beside the floor's;
   - |db|: how far its final hard iron lies from the whole-stream replay's (uT);
-  - sd: its reported hard-iron standard deviation (uT) and heading sd (deg).
+  - sd: its reported hard-iron standard deviation (uT) and heading sd (deg);
+  - restarts: how many times a new calibration replaced the accepted one outright (the first
+    acceptance, a switch, or a restart of the pool), as opposed to a trial joining the pool.
 A developer tool run on demand; nothing here tunes the calibrator.
 """
 from __future__ import annotations
@@ -59,7 +61,7 @@ def study(root, key, window, estep_every, options, log):
     head_floor = heading_error_rms(floor.hard_iron, floor.soft_iron, c.raw_all, c.trial, c.rows)
     log(f"trial {key}: {len(c.raw)} samples at {c.trial['fs']:.1f} Hz; floor heading {head_floor:.3f} deg")
     log("  replay     changes  final/worst vs floor  final/worst vs truth  heading  |db|   sd (uT)              "
-        "heading sd")
+        "heading sd  restarts")
     rows, base = [], None
     replays = [("whole", c.raw)] + [(f"drop {k}", c.raw[k:]) for k in (1, 10, 50, 100)] + \
         [("half even", c.raw[::2]), ("half odd", c.raw[1::2])]
@@ -76,12 +78,12 @@ def study(root, key, window, estep_every, options, log):
         u = acc.uncertainty
         log(f"  {label:10s} {len(path['floor']):7d}  {path['floor'][-1]:6.3f} / {max(path['floor']):6.3f}"
             f"       {path['truth'][-1]:6.3f} / {max(path['truth']):6.3f}       {head:6.3f}  {db:5.3f}  "
-            f"{np.round(u['hard_iron_sd'], 3)}  {u['heading_sd_deg']:.3f}")
+            f"{np.round(u['hard_iron_sd'], 3)}  {u['heading_sd_deg']:.3f}  {cal.switches}")
         rows.append({"trial": key, "replay": label, "accepted": True, "changes": len(path["floor"]),
                      "final_vs_floor": path["floor"][-1], "worst_vs_floor": max(path["floor"]),
                      "final_vs_truth": path["truth"][-1], "worst_vs_truth": max(path["truth"]),
                      "heading_deg": head, "floor_heading_deg": head_floor, "db_vs_whole": db,
-                     "uncertainty": u})
+                     "uncertainty": u, "restarts": cal.switches})
     return rows
 
 

@@ -119,6 +119,8 @@ void mkc_stream_predict(const mkc_stream_t *st, const mkc_real *x, mkc_real *out
 
 /* ---- the magnetometer calibrator (calib/streaming.py MagCalibrator) ---- */
 enum { MKC_POLICY_FIFO = 0, MKC_POLICY_DIRECTION = 1 };
+/* how a passing trial reaches the accepted calibration (calib/streaming.py SWITCHING) */
+enum { MKC_SWITCH_PAIRED = 0, MKC_SWITCH_POOLED = 1 };
 
 /* failed acceptance criteria (calib/acceptance.py check), bits of mkc_mag_reason.fails */
 enum {
@@ -161,6 +163,7 @@ typedef struct mkc_mag_config {
     int unit_ut;                     /* 1: samples are in uT, check the physical field range */
     int init_samples;                /* samples for the first normalisation (0: min(W, 64)); <= W */
     mkc_mag_rules rules;
+    int switching;                   /* MKC_SWITCH_POOLED (default) or MKC_SWITCH_PAIRED */
 } mkc_mag_config;
 
 typedef struct mkc_mag_calibration { /* calib/streaming.py Calibration */
@@ -199,6 +202,9 @@ typedef struct mkc_mag {
     mkc_mag_rules rules;
     mkc_mag_calibration trial, accepted;
     int64_t first_accepted_at;       /* samples seen at the first acceptance, -1: never */
+    int32_t switching;               /* MKC_SWITCH_POOLED or MKC_SWITCH_PAIRED */
+    int32_t pool_n, pool_streak;     /* trials in the pool, disagreeing trials in a row */
+    mkc_acc pool_mean[13];           /* the pool's running mean of (b, S row-major, F) */
     int64_t checkpoints;             /* checkpoints done */
     mkc_mag_reason last_reason;
     mkc_mag_event last_event;

@@ -18,7 +18,8 @@ static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration 
     return MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
 }
 
-/* supports_switch: 1 when the window supports replacing `acc` by `trial`, i.e. gain > z se with
+/* supports_switch: 1 when the window supports replacing `acc` by `trial`, 2 when it does so strongly
+ * (gain > Z_RESTART se, the pooled calibrator's restart test), 0 otherwise; i.e. gain > z se with
  * D_k = e_a,k^2 - e_t,k^2 over the trial's inliers, e_k = |S (m_k - b)| / F - 1, gain = mean(D) and
  * se^2 = G / (G - 1) sum_c (sum_{k in c} (D_k - gain))^2 / n^2 clustered by the trial-calibrated
  * direction cell c (G occupied cells). */
@@ -62,6 +63,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     if (G < 2)
         return 0;
     se = MKC_SQRT_C(ss * (mkc_creal)G / (mkc_creal)(G - 1)) / (mkc_creal)n;
+    if ((mkc_creal)gain > CR(MKC_Z_RESTART) * se)
+        return 2;
     return (mkc_creal)gain > CR(MKC_Z_SWITCH) * se;
 }
 

@@ -25,6 +25,7 @@ void mkc_mag_config_default(mkc_mag_config *cfg)
     cfg->rules.field_lo_ut = RC(MKC_DEF_FIELD_LO_UT);
     cfg->rules.field_hi_ut = RC(MKC_DEF_FIELD_HI_UT);
     cfg->rules.max_disagreement_rel = RC(MKC_DEF_MAX_DISAGREEMENT_REL);
+    cfg->switching = MKC_SWITCH_POOLED;
 }
 
 int mkc_mag_init(mkc_mag_t *cal, const mkc_mag_config *cfg)
@@ -40,7 +41,8 @@ int mkc_mag_init(mkc_mag_t *cal, const mkc_mag_config *cfg)
     sc.m = 1;
     W = sc.window;
     if (MKC_N < 9 || (cfg->policy != MKC_POLICY_FIFO && cfg->policy != MKC_POLICY_DIRECTION) ||
-        cfg->init_samples < 0 || cfg->init_samples > W)
+        cfg->init_samples < 0 || cfg->init_samples > W ||
+        (cfg->switching != MKC_SWITCH_PAIRED && cfg->switching != MKC_SWITCH_POOLED))
         return MKC_BAD_INPUT;
     for (k = 0; k < sizeof(*cal); k++)
         p[k] = 0;
@@ -53,6 +55,7 @@ int mkc_mag_init(mkc_mag_t *cal, const mkc_mag_config *cfg)
     cal->provisional = 1;
     cal->rules = cfg->rules;
     cal->first_accepted_at = -1;
+    cal->switching = cfg->switching;
     cal->last_reason.code = MKC_REASON_INITIAL;
     return MKC_OK;
 }
@@ -232,6 +235,83 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
     return dis;
 }
 
+/* _offer_pooled (calib/streaming.py): the accepted calibration is the running mean of the trials
+ * p_i = (b_i, S_i, F_i) that joined the pool, p <- p + (p_i - p) / min(n, N), N = MKC_POOL_WINDOWS W / K.
+ * A trial joins unless the window supports it over the pool and it lies farther than
+ * max_disagreement_rel * F from it, or supports it strongly (gain > Z_RESTART se); W / K such trials in
+ * a row restart the pool from the latest.
+ * While the pool holds fewer than W / K trials, a trial the window supports replaces it. */
+static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal)
+{
+    mkc_acc member[13], n_cap;
+    int per_window = g->core.cfg.window / g->core.cfg.estep_every, i, j;
+    mkc_mag_calibration *a = &g->accepted;
+    if (per_window < 1)
+        per_window = 1;
+    for (i = 0; i < 3; i++) {
+        member[i] = (mkc_acc)cal->hard_iron[i];
+        for (j = 0; j < 3; j++)
+            member[3 + 3 * i + j] = (mkc_acc)cal->soft_iron[i][j];
+    }
+    member[12] = (mkc_acc)cal->field;
+    if (g->pool_n > 0) {
+        int support = mkc__supports_switch(g, count, cal, a), better = support >= 1, strong = support == 2;
+        mkc_acc tol = (mkc_acc)g->rules.max_disagreement_rel * MKC_FABS_A(g->pool_mean[12]);
+        mkc_acc d0 = member[0] - g->pool_mean[0], d1 = member[1] - g->pool_mean[1], d2 = member[2] - g->pool_mean[2];
+        int far = MKC_SQRT_A(d0 * d0 + d1 * d1 + d2 * d2) > tol || MKC_FABS_A(member[12] - g->pool_mean[12]) > tol;
+        if (better && g->pool_n < per_window) {
+            g->pool_n = 0;             /* a young pool: the paired rule, the better trial replaces it */
+        } else if (strong || (better && far)) {
+            g->pool_streak += 1;
+            if (g->pool_streak < per_window)
+                return;
+            g->pool_n = 0;             /* the data moved on: start again from this trial */
+        }
+    }
+    g->pool_streak = 0;
+    g->pool_n += 1;
+    n_cap = (mkc_acc)(g->pool_n < MKC_POOL_WINDOWS * per_window ? g->pool_n : MKC_POOL_WINDOWS * per_window);
+    for (i = 0; i < 13; i++)
+        g->pool_mean[i] += (member[i] - g->pool_mean[i]) / n_cap;
+    *a = *cal;
+    for (i = 0; i < 3; i++) {
+        a->hard_iron[i] = (mkc_real)g->pool_mean[i];
+        for (j = 0; j < 3; j++)
+            a->soft_iron[i][j] = (mkc_real)(AC(0.5) * (g->pool_mean[3 + 3 * i + j] + g->pool_mean[3 + 3 * j + i]));
+    }
+    a->field = (mkc_real)g->pool_mean[12];
+}
+
+/* The accepted calibration (restored from storage, persist.c) as the pool's one member: a young pool,
+ * so a trial the window supports over it replaces it and the others average with it. */
+void mkc__seed_pool(mkc_mag_t *g)
+{
+    const mkc_mag_calibration *a = &g->accepted;
+    int i, j;
+    for (i = 0; i < 3; i++) {
+        g->pool_mean[i] = (mkc_acc)a->hard_iron[i];
+        for (j = 0; j < 3; j++)
+            g->pool_mean[3 + 3 * i + j] = (mkc_acc)a->soft_iron[i][j];
+    }
+    g->pool_mean[12] = (mkc_acc)a->field;
+    g->pool_n = 1;
+    g->pool_streak = 0;
+}
+
+/* _offer: a passing trial replaces the accepted calibration only when the window supports it as the
+ * better fit (calib/confidence.py), or joins the pool (offer_pooled) */
+static void offer(mkc_mag_t *g, int count, const mkc_mag_calibration *cal, int64_t seen)
+{
+    if (g->switching == MKC_SWITCH_POOLED)
+        offer_pooled(g, count, cal);
+    else if (!g->accepted.valid || mkc__supports_switch(g, count, cal, &g->accepted))
+        g->accepted = *cal;
+    else
+        return;
+    if (g->first_accepted_at < 0)
+        g->first_accepted_at = seen;
+}
+
 static void checkpoint(mkc_mag_t *g)
 {
     int64_t seen = g->core.counters.seen, esteps = g->core.counters.esteps;
@@ -335,13 +415,9 @@ static void checkpoint(mkc_mag_t *g)
     cal->reason = reason;
     cal->samples_seen = seen;
     cal->esteps = esteps;
-    /* _offer: a passing trial replaces the accepted calibration only when the window supports it as
-     * the better fit (calib/confidence.py) */
-    if (!fails && (!g->accepted.valid || mkc__supports_switch(g, count, cal, &g->accepted))) {
-        g->accepted = *cal;
-        if (g->first_accepted_at < 0)
-            g->first_accepted_at = seen;
-    }
+    /* _offer: a passing trial reaches the accepted calibration */
+    if (!fails)
+        offer(g, count, cal, seen);
     g->last_reason = reason;
     g->last_event.samples_seen = seen;
     g->last_event.esteps = esteps;

@@ -208,8 +208,10 @@ mkc_real mkc__weighted_condition(mkc_mag_t *g, int count);
 uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, mkc_creal disagreement,
                                mkc_mag_reason *reason);
 
-/* ---- confidence.c (calib/confidence.py supports_switch, calib/quality.py sphere_spread) ---- */
+/* ---- confidence.c (calib/confidence.py supports_switch: 0, 1 or 2 (strongly); calib/quality.py sphere_spread) ---- */
 int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *trial, const mkc_mag_calibration *acc);
+/* mag.c: the accepted calibration becomes the switching pool's one member (a restored calibration) */
+void mkc__seed_pool(mkc_mag_t *g);
 mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r);
 
 #endif /* MKC_INTERNAL_H */

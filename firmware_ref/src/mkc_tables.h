@@ -155,8 +155,10 @@ static const float mkc_gl_weights[MKC_GL_ORDER] = {
 #define MKC_MIN_SPHERE_COVERAGE 0x1.999999999999ap-2 /* 0.4 */
 #define MKC_MAX_SPHERE_SPREAD 0x1.3333333333333p-2 /* 0.3 */
 #define MKC_Z_SWITCH 0x1.0000000000000p+1 /* 2.0: calib/confidence.py */
+#define MKC_Z_RESTART 0x1.8000000000000p+1 /* 3.0: calib/confidence.py */
 #define MKC_MAX_FAILED_CHECKPOINTS 4
 #define MKC_MAX_MISFIT_TRIALS 8
+#define MKC_POOL_WINDOWS 32
 #define MKC_COLD_START_ROUNDS 10
 #define MKC_DEF_INIT_SAMPLES 64 /* min(window, 64) */
 

@@ -38,6 +38,9 @@ N_CELLS = N_BANDS * N_SECTORS
 
 #: z of the paired test: a trial replaces the accepted calibration only when its gain is > Z_SWITCH se
 Z_SWITCH = 2.0
+#: z at which the pooled calibrator (streaming.py) counts a trial as disagreeing with its pool however
+#: close the two are: W / K such trials in a row restart the pool
+Z_RESTART = 3.0
 
 
 def relative_residuals(raw, b, S, F) -> np.ndarray:

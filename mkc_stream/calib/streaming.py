@@ -1,13 +1,15 @@
 """MagCalibrator: the ellipsoid model fed sample by sample through the streaming MKC-EM.
 
-Keeps a *trial* calibration (the latest E-step checkpoint) and an *accepted* one (the last trial
-that passed the acceptance predicate and that its window supported as a better fit than the one
-accepted before, calib/confidence.py); apply() uses only the accepted one. Features are the
+Keeps a *trial* calibration (the latest E-step checkpoint) and an *accepted* one: the running mean
+of the trials that passed the acceptance predicate and agree with it (a fit over more than one
+window; a pool that restarts when fresh data keep preferring another calibration, _offer_pooled);
+apply() uses only the accepted one. Features are the
 ellipsoid's 9 terms of (m - c0)/s0; (c0, s0) follow the trial centre and radius, and when they
 move the window's features are recomputed from the raw samples kept in the state.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from dataclasses import field as dc_field
 
@@ -19,7 +21,7 @@ from ..kernels import window as K
 from ..defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from ..stream import StreamingMKC
 from .acceptance import AcceptanceRules, coverage_wait_reason, degenerate_reason, evaluate, motion_wait_reason
-from .confidence import calibration_uncertainty, supports_switch
+from .confidence import Z_RESTART, calibration_uncertainty, supports_switch
 from .ellipsoid import (EllipsoidError, Normalisation, calibration_from_geometry, geometry_from_theta,
                         raw_geometry, robust_sphere_fit, sphere_theta)
 from .fit import weighted_condition
@@ -31,9 +33,11 @@ from .result import Calibration, Rejection
 UNIT_SPHERE_THETA = sphere_theta((0.0, 0.0, 0.0), 1.0)
 
 POLICIES = {"fifo": 0, "direction": 1}
+#: "pooled": the accepted calibration is the mean of the passing trials that agree with it (a fit
+#: over more than one window), restarted when the data keep preferring a new one (_offer);
 #: "paired": a passing trial replaces the accepted calibration only when the window supports it as the
-#: better fit (confidence.py); "latest": every passing trial does (for comparison studies)
-SWITCHING = ("paired", "latest")
+#: better fit (confidence.py); "latest": every passing trial does (the last two for comparison studies)
+SWITCHING = ("pooled", "paired", "latest")
 
 
 class NotCalibratedError(RuntimeError):
@@ -78,7 +82,7 @@ class MagCalibrator:
     COLD_START_ROUNDS = 10
 
     def __init__(self, window=DEFAULT_WINDOW, estep_every=DEFAULT_ESTEP_EVERY, unit="uT", policy="direction", rules=AcceptanceRules(),
-                 init_samples=None, keep_history=True, on_checkpoint=None, switching="paired", **stream_kw):
+                 init_samples=None, keep_history=True, on_checkpoint=None, switching="pooled", **stream_kw):
         if policy not in POLICIES:
             raise MKCInputError(f"policy must be one of {sorted(POLICIES)}")
         if not isinstance(unit, str):
@@ -132,6 +136,12 @@ class MagCalibrator:
         self.first_accepted_at: int | None = None
         self.switches = 0
         self.last_switch_test = None
+        # the pool (switching="pooled"): the running mean of the agreeing trials' (b, S, F), how many
+        # trials it holds (capped at POOL_WINDOWS windows' worth), and how many trials in a row
+        # disagreed with it
+        self.pool_n = 0
+        self.pool_mean = np.zeros(13)
+        self.pool_streak = 0
         self.history: list[CheckpointEvent] = []
         self.last_event: CheckpointEvent | None = None
         self.last_rejection: Rejection | None = Rejection("warming_up", "warming up: not enough samples yet")
@@ -261,17 +271,79 @@ class MagCalibrator:
             self._maybe_renormalise(geom, b, F)
         return ev
 
+    #: the pool's memory, in windows: its mean forgets older trials once it holds this many windows'
+    #: worth of them (W / K trials per window), so a slow change of the calibration is followed
+    POOL_WINDOWS = 32
+
     def _offer(self, cal, raw):
-        """A trial that passed every gate replaces the accepted calibration only when the window
-        supports it as the better fit (confidence.supports_switch): the accepted one never moves to a
-        fit that is worse on the data in hand, nor with the noise of each new window."""
+        """A trial that passed every gate, offered to the accepted calibration.
+
+        "paired"/"latest": it replaces the accepted one when the window supports it as the better fit
+        (confidence.supports_switch) / always. "pooled" (_offer_pooled): the accepted calibration is
+        the running mean of the trials that agree with it.
+        """
+        if self.switching == "pooled":
+            return self._offer_pooled(cal, raw)
         if self.accepted is not None and self.switching == "paired":
             better, gain, se = supports_switch(raw, cal, self.accepted)
             self.last_switch_test = (gain, se)
             if not better:
                 return
-        self.accepted = replace(cal, uncertainty=calibration_uncertainty(raw, cal.hard_iron, cal.soft_iron, cal.field))
-        self.switches += 1
+        self._accept(cal, raw)
+
+    def _offer_pooled(self, cal, raw):
+        """The pooled calibration: the running mean over the trials p_i = (b_i, S_i, F_i) that joined,
+            p <- p + (p_i - p) / min(n, N),   N = POOL_WINDOWS * W / K
+        (the plain mean of the first N, then an exponential memory of about N trials). A trial joins
+        unless it disagrees: the window supports it over the pool (confidence.supports_switch, gain
+        > Z_SWITCH se) and it lies farther from the pool than the cold start's tolerance (|b_i - b| or
+        |F_i - F| above max_disagreement_rel * F), or the window supports it strongly (gain >
+        Z_RESTART se) however close. W / K disagreeing trials in a row (the window has turned over
+        and fresh data keep preferring another calibration) restart the pool from the latest. A young pool
+        (fewer than W / K trials) follows the paired rule: a trial the window supports replaces it, so
+        the first windows of a stream, fitted before the motion covered much, do not weigh on the pool.
+
+        Why: one window's estimate moves with that window's noise (hard-iron sd 0.05-0.1 uT per axis
+        on a real recording), so the result depended on which window a run ended on; overlapping
+        windows averaged over the run do not, and a disturbed window that passed the gates is one
+        member among many. The window's preference alone cannot be the test: windows of different
+        directions prefer their own fit over any average, since a real field is not an exact ellipsoid.
+        """
+        member = np.concatenate([cal.hard_iron, np.asarray(cal.soft_iron, dtype=np.float64).ravel(), [cal.field]])
+        per_window = max(1, self.stream.config.window // self.stream.config.estep_every)
+        if self.pool_n > 0:
+            better, gain, se = supports_switch(raw, cal, self.accepted)
+            self.last_switch_test = (gain, se)
+            tol = self.rules.max_disagreement_rel * abs(self.pool_mean[12])
+            db = member[:3] - self.pool_mean[:3]
+            # written out (not np.linalg.norm) so that the C port computes the same bits
+            far = math.sqrt(db[0] * db[0] + db[1] * db[1] + db[2] * db[2]) > tol or \
+                abs(member[12] - self.pool_mean[12]) > tol
+            strong = gain > Z_RESTART * se
+            if better and self.pool_n < per_window:
+                self.pool_n = 0                    # a young pool: the paired rule, the better trial replaces it
+            elif strong or (better and far):
+                self.pool_streak += 1
+                if self.pool_streak < per_window:
+                    return
+                self.pool_n = 0                    # the data moved on: start again from this trial
+        self.pool_streak = 0
+        self.pool_n += 1
+        self.pool_mean += (member - self.pool_mean) / min(self.pool_n, self.POOL_WINDOWS * per_window)
+        Sm = self.pool_mean[3:12].reshape(3, 3)
+        pooled = replace(cal, hard_iron=self.pool_mean[:3].copy(), soft_iron=0.5 * (Sm + Sm.T),
+                         field=float(self.pool_mean[12]))
+        # the uncertainty is one window's figure: recomputed when the pool restarts and once per window
+        # turnover (0.3 ms each at W = 512, about a sixth of the calibrator's time if done every trial)
+        fresh = self.pool_n % per_window == 1 % per_window or self.accepted is None or self.accepted.uncertainty is None
+        self._accept(pooled, raw, switched=self.pool_n == 1,
+                     uncertainty=None if fresh else self.accepted.uncertainty)
+
+    def _accept(self, cal, raw, switched=True, uncertainty=None):
+        if uncertainty is None:
+            uncertainty = calibration_uncertainty(raw, cal.hard_iron, cal.soft_iron, cal.field)
+        self.accepted = replace(cal, uncertainty=uncertainty)
+        self.switches += int(switched)
         if self.first_accepted_at is None:
             self.first_accepted_at = cal.samples_seen
 

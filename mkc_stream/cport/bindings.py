@@ -74,7 +74,7 @@ class _Lib:
 
         class MagConfig(C.Structure):
             _fields_ = [("stream", Config), ("policy", C.c_int), ("unit_ut", C.c_int), ("init_samples", C.c_int),
-                        ("rules", Rules)]
+                        ("rules", Rules), ("switching", C.c_int)]
 
         class Calibration(C.Structure):
             _fields_ = [("hard_iron", real * 3), ("soft_iron", real * 9), ("field", real), ("sigma", real),
@@ -310,10 +310,16 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
 
 
 class CMagCalibrator(_CoreFields):
-    """The C port's MagCalibrator(window, estep_every, unit, policy, rules, init_samples, **stream_kw)."""
+    """The C port's MagCalibrator(window, estep_every, unit, policy, rules, init_samples, switching, **stream_kw).
+
+    switching: "pooled" or "paired" (the C port has no "latest"); None: the C library's default."""
+
+    #: calib/streaming.py SWITCHING -> the C port's MKC_SWITCH_*
+    SWITCHING = {"paired": 0, "pooled": 1}
 
     def __init__(self, window=DEFAULT_WINDOW, estep_every=DEFAULT_ESTEP_EVERY, unit="uT", policy="direction", rules=None,
-                 init_samples=None, precision="double", keep_history=True, on_checkpoint=None, **stream_kw):
+                 init_samples=None, precision="double", keep_history=True, on_checkpoint=None, switching=None,
+                 **stream_kw):
         from ..calib.acceptance import AcceptanceRules
 
         self.lib = lib = load(precision)
@@ -326,6 +332,10 @@ class CMagCalibrator(_CoreFields):
         self._cfg.policy = {"fifo": 0, "direction": 1}[policy]
         self._cfg.unit_ut = int(is_microtesla(unit))
         self._cfg.init_samples = int(init_samples or 0)
+        if switching is not None:
+            if switching not in self.SWITCHING:
+                raise ValueError(f"switching must be one of {sorted(self.SWITCHING)} in the C port; got {switching!r}")
+            self._cfg.switching = self.SWITCHING[switching]
         r = self.rules
         for k, v in (("min_coverage", r.min_coverage), ("max_condition", r.max_condition),
                      ("max_outlier_fraction", r.max_outlier_fraction), ("max_residual_rel", r.max_residual_rel),
