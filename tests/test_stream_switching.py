@@ -84,6 +84,11 @@ def test_a_young_pool_follows_the_better_trial_and_a_grown_one_averages():
     assert 1 <= cal.switches <= 6                            # first acceptance plus few restarts
     mean_b = cal.pool_mean[:3]
     assert np.array_equal(cal.accepted.hard_iron, mean_b)    # the accepted calibration is the pool's mean
+    # in the package's convention: the mean of det-1 matrices is rescaled to det 1, F with it
+    S = cal.accepted.soft_iron
+    assert abs(np.linalg.det(S) - 1.0) < 1e-12 and np.allclose(S, S.T, rtol=0, atol=1e-15)
+    c = np.linalg.det(0.5 * (cal.pool_mean[3:12].reshape(3, 3) + cal.pool_mean[3:12].reshape(3, 3).T)) ** (1 / 3)
+    assert abs(cal.accepted.field - cal.pool_mean[12] / c) < 1e-9 * cal.accepted.field
 
 
 def test_a_new_hard_iron_is_followed():

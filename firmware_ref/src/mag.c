@@ -243,7 +243,7 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
  * While the pool holds fewer than W / K trials, a trial the window supports replaces it. */
 static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal)
 {
-    mkc_acc member[13], n_cap;
+    mkc_acc member[13], n_cap, S[3][3], det, c;
     int per_window = g->core.cfg.window / g->core.cfg.estep_every, i, j;
     mkc_mag_calibration *a = &g->accepted;
     if (per_window < 1)
@@ -273,13 +273,20 @@ static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal
     n_cap = (mkc_acc)(g->pool_n < MKC_POOL_WINDOWS * per_window ? g->pool_n : MKC_POOL_WINDOWS * per_window);
     for (i = 0; i < 13; i++)
         g->pool_mean[i] += (member[i] - g->pool_mean[i]) / n_cap;
+    /* det_one (calib/streaming.py): S' = sym(S) / c, F' = F / c, c = det(sym(S))^(1/3), so det S' = 1 */
+    for (i = 0; i < 3; i++)
+        for (j = 0; j < 3; j++)
+            S[i][j] = AC(0.5) * (g->pool_mean[3 + 3 * i + j] + g->pool_mean[3 + 3 * j + i]);
+    det = S[0][0] * (S[1][1] * S[2][2] - S[1][2] * S[2][1]) - S[0][1] * (S[1][0] * S[2][2] - S[1][2] * S[2][0])
+          + S[0][2] * (S[1][0] * S[2][1] - S[1][1] * S[2][0]);
+    c = MKC_EXP_A(MKC_LOG_A(det) / AC(3.0));
     *a = *cal;
     for (i = 0; i < 3; i++) {
         a->hard_iron[i] = (mkc_real)g->pool_mean[i];
         for (j = 0; j < 3; j++)
-            a->soft_iron[i][j] = (mkc_real)(AC(0.5) * (g->pool_mean[3 + 3 * i + j] + g->pool_mean[3 + 3 * j + i]));
+            a->soft_iron[i][j] = (mkc_real)(S[i][j] / c);
     }
-    a->field = (mkc_real)g->pool_mean[12];
+    a->field = (mkc_real)(g->pool_mean[12] / c);
 }
 
 /* The accepted calibration (restored from storage, persist.c) as the pool's one member: a young pool,

@@ -44,6 +44,8 @@
 /* mkc_acc */
 #define MKC_SQRT_A(x) MKC__FN_A(sqrt)(x)
 #define MKC_FABS_A(x) MKC__FN_A(fabs)(x)
+#define MKC_EXP_A(x) MKC__FN_A(exp)(x)
+#define MKC_LOG_A(x) MKC__FN_A(log)(x)
 
 /* mkc_ereal */
 #define MKC_SQRT_E(x) MKC__FN_E(sqrt)(x)

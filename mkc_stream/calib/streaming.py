@@ -40,6 +40,18 @@ POLICIES = {"fifo": 0, "direction": 1}
 SWITCHING = ("pooled", "paired", "latest")
 
 
+def det_one(Sm, F):
+    """The mean of trials' (S, F) in the package's convention det S = 1 (m_cal = S (m - b), |m_cal| = F):
+    S' = sym(Sm) / c, F' = F / c, c = det(sym(Sm))^(1/3). The mean of det-1 matrices has det 1 only to
+    first order (1 + 1e-6 seen). Written out (the 3x3 determinant by its rule, c = exp(log(det) / 3)),
+    not through LAPACK, so that the C port computes the same bits."""
+    S = 0.5 * (Sm + Sm.T)
+    det = (S[0, 0] * (S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]) - S[0, 1] * (S[1, 0] * S[2, 2] - S[1, 2] * S[2, 0])
+           + S[0, 2] * (S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]))
+    c = math.exp(math.log(float(det)) / 3.0)
+    return S / c, F / c
+
+
 class NotCalibratedError(RuntimeError):
     """apply() was called before any calibration was accepted."""
 
@@ -330,9 +342,8 @@ class MagCalibrator:
         self.pool_streak = 0
         self.pool_n += 1
         self.pool_mean += (member - self.pool_mean) / min(self.pool_n, self.POOL_WINDOWS * per_window)
-        Sm = self.pool_mean[3:12].reshape(3, 3)
-        pooled = replace(cal, hard_iron=self.pool_mean[:3].copy(), soft_iron=0.5 * (Sm + Sm.T),
-                         field=float(self.pool_mean[12]))
+        S, F = det_one(self.pool_mean[3:12].reshape(3, 3), float(self.pool_mean[12]))
+        pooled = replace(cal, hard_iron=self.pool_mean[:3].copy(), soft_iron=S, field=F)
         # the uncertainty is one window's figure: recomputed when the pool restarts and once per window
         # turnover (0.3 ms each at W = 512, about a sixth of the calibrator's time if done every trial)
         fresh = self.pool_n % per_window == 1 % per_window or self.accepted is None or self.accepted.uncertainty is None
