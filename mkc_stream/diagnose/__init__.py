@@ -13,7 +13,9 @@ only if the residual no longer follows any recorded aux signal (:mod:`.completen
 "partially explained", naming the signal). When the calibrator would not accept the baseline's
 calibration, the verdict is "baseline_rejected", with the calibrator's reason, and only what does
 not rest on the calibration is tested (:mod:`.scope`; its verdict is ``info.scope``'s
-``verdict_on_testable``). ``Diagnosis.to_json()`` is the
+``verdict_on_testable``). The verdict is decided from figures returned beside it
+(:mod:`.verdict`: "explained" only with the held-out gap index at or below its alarm level), and
+the effects that were not tested are listed with the reason (``dropped``). ``Diagnosis.to_json()`` is the
 object of docs/spec/machine-output.md; :mod:`.report` writes the human report and plots.
 """
 from __future__ import annotations
@@ -48,6 +50,8 @@ class Diagnosis:
     selected: list
     excluded: list
     info: dict = field(default_factory=dict)
+    basis: object = None                 # .verdict.Basis: the figures the verdict was decided from
+    dropped: list = field(default_factory=list)   # [{"name", "reason"}]: effects not tested, and why
     engine: object = field(default=None, repr=False)
     evaluations: dict = field(default_factory=dict, repr=False)
 
@@ -62,6 +66,7 @@ class Diagnosis:
                 "magnitude_ci": jsonable(r.magnitude_ci)})
         return {
             "verdict": self.verdict,
+            "verdict_basis": None if self.basis is None else jsonable(self.basis.to_json()),
             "gap_before": finite_or_none(self.gap_before),
             "gap_after": finite_or_none(self.gap_after),
             "where": self.where,
@@ -71,6 +76,7 @@ class Diagnosis:
             "shrink": finite_or_none(self.shrink),
             "threshold": finite_or_none(self.threshold),
             "excluded": self.excluded,
+            "dropped": self.dropped,
             "info": jsonable(self.info),
         }
 
@@ -95,19 +101,21 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
              log=None) -> Diagnosis:
     """Diagnose the sim-to-real gap of a recording (see the module documentation).
 
-    exclude: effect names to leave out of the library (the blind benchmark's "removed" trials).
+    exclude: effect names to leave out of the library (the blind benchmark's "removed" trials);
+    an effect whose form holds one of them as a special case (``MeanForm.contains``) goes too.
     profile: "fast" (the 60 s budget for 10^4 samples) or "full". log: a callable for progress lines.
     Raises DiagnoseError for recordings that cannot be diagnosed, with the reason.
     """
     from ..sim.effects import EFFECTS
     from . import gap
-    from .attribution import Attribution, effect_testable, verdict
+    from .attribution import Attribution, effect_testable
     from .baseline import INCLINATION_CONVENTION, fit_baseline, inclination_deg
     from .completeness import aux_left
     from .engine import Candidate, Engine
     from .frame import prepare
     from .gyro_timing import gyro_delay
     from .matched import MatchedTests, mean_effects
+    from .verdict import decide, held_out_rss_drop
 
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; use {', '.join(PROFILES)}")
@@ -136,7 +144,12 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     by_gap = bool(ev0.G > thr0)
     log(f"gap index {ev0.G:.3f} (held-out; no-gap level 1, alarm above {thr0:.3f})")
 
-    library = [n for n in EFFECTS if n not in set(exclude)]
+    # an effect whose form holds an excluded one as a special case would explain the excluded
+    # one's evidence in its own shape: it is left out with it
+    with_it = {n: [x for x in getattr(EFFECTS[n].form, "contains", ()) if x in set(exclude)]
+               for n in EFFECTS if n not in set(exclude)}
+    with_it = {n: xs for n, xs in with_it.items() if xs}
+    library = [n for n in EFFECTS if n not in set(exclude) and n not in with_it]
     # the omnibus gap index misses small slow mean effects an oracle sees: one matched test per
     # testable mean effect of the library (Bonferroni; see .matched) can also raise the alarm
     # the magnetometer's timing against the gyroscope: the latency test's second view
@@ -157,20 +170,31 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     results, selected, ambiguous, final = att.run(detected, by_matched=by_matched)
     first = results[selected[0]].shrink if selected else float("nan")
     ms = att.matched_summary
-    v, s = verdict(detected, ev0.G, final.G, selected, thr0, first if first is not None else float("nan"),
-                   matched=(ms.get("shrink", 0.0), ms.get("closed", False)) if by_matched else None)
+    detected_by = "gap index" if by_gap else "matched tests" if by_matched else None
+    # matched evidence is found in-sample: it must also lower the held-out residual
+    rss_drop = held_out_rss_drop(ev0, final, base.sigma) if by_matched and selected else None
+    # a latency's second view, the gyroscope's timing, has its own held-out check
+    gyro_drop = (gyro.get("held_out_drop") if by_matched and "latency" in selected and mt.gyro is not None
+                 else None)
+    v, basis = decide(detected_by, ev0.G, final.G if selected else ev0.G, thr0, selected, first,
+                      matched=(ms.get("shrink", 0.0), ms.get("closed", False)) if by_matched else None,
+                      rss_drop=rss_drop, gyro_drop=gyro_drop)
+    s = basis.shrink
     # an explanation that leaves a dependence on a recorded aux signal is not complete (and a
     # partial one says which signal the rest follows)
     left = aux_left(eng, final, selected) if scope.accepted and v in ("explained", "partially_explained") else {}
     still = sorted((a for a, r in left.items() if r["fired"]), key=lambda a: -left[a]["t"])
     if still:
         log(f"  the residual still follows {', '.join(still)} given {' + '.join(selected)}")
+        basis.notes.append(f"{v} -> partially_explained: the residual still follows {', '.join(still)}")
         v = "partially_explained"
     # a baseline that is not a calibration raises no gap: what it could still test is reported
     # beside the verdict
     on_testable = v
     if not scope.accepted:
+        basis.notes.append(f"{v} on what could be tested -> baseline_rejected: {scope.reason}")
         v = "baseline_rejected"
+    log(f"verdict {v}: {basis.rule}")
     lat = results.get("latency")
     if mt.gyro is not None and lat is not None and lat.magnitude is not None:
         lat.magnitude = {**lat.magnitude, "gyro_delay_ms": gyro["delay_ms"], "gyro_delay_se_ms": gyro["se_ms"]}
@@ -199,7 +223,12 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
         "gyro_timing": gyro,
         "aux_used": list(frame.aux), "aux_ignored": frame.aux_notes, "bad_rows": frame.bad_rows,
     }
+    dropped = [{"name": n, "reason": "left out of the library (exclude)"} for n in sorted(exclude)]
+    dropped += [{"name": n, "reason": f"left out with {', '.join(xs)}, which its form holds as a special case"}
+                for n, xs in with_it.items()]
+    dropped += [{"name": r.name, "reason": r.reason} for r in ordered if not r.testable]
     return Diagnosis(verdict=v, gap_before=ev0.G, gap_after=final.G if selected else ev0.G,
                      threshold=thr0, shrink=s, where=_where(eng, ev0),
                      effects=ordered, ambiguous_with=ambiguous, selected=selected, excluded=sorted(exclude),
-                     info=info, engine=eng, evaluations={"baseline": ev0, "final": final})
+                     info=info, basis=basis, dropped=dropped, engine=eng,
+                     evaluations={"baseline": ev0, "final": final})

@@ -49,9 +49,6 @@ from .model import block_normals, bootstrap_theta, fit_model
 MIN_STEP = 0.1
 MAX_EFFECTS = 3
 N_VERIFY = 3
-EXPLAINED = 0.9                 # shrink that counts as explained even when the gap is not at its null level
-PARTIAL = 0.3
-FIRST_ALONE = 0.7               # several weak effects that together mimic a gap are not an explanation
 CATCH_ALL_CLOSE = 0.95          # ... or it closes nearly all of the gap
 PAY_CONFIDENCE = 0.9            # bootstrap confidence that an added effect lowers the gap
 TIE_FRACTION = 0.9              # candidates closing at least this fraction of the best one's step may tie
@@ -258,6 +255,10 @@ class Attribution:
         best = max(shr[n] for n in ok)
         tied = [n for n in ok if shr[n] >= TIE_FRACTION * best]
         first = max(tied, key=lambda n: mt.result(n)["t"])
+        # a form that holds a tied one as a special case is not the simpler explanation
+        inner = [n for n in tied if n in getattr(FORMS[first], "contains", ())]
+        if inner:
+            first = max(inner, key=lambda n: mt.result(n)["t"])
         ambiguous = [n for n in ok if n != first and mt.result(first, (n,))["p"] >= mt.level]
         for name in results:                       # same observable (cross_axis / misalignment)
             if name != first and results[name].testable and (FORMS[name].alias_of == first
@@ -505,28 +506,4 @@ def effect_testable(base, name):
     return base.scope.effect_testable(EFFECTS[name], base.evidence)
 
 
-def verdict(detected, g0, g_final, selected, thr, first_shrink, matched=None):
-    """no_gap; explained (the selected effects bring the held-out gap to its null level, or close
-    at least EXPLAINED of it, and the first of them alone closes at least FIRST_ALONE);
-    partially_explained (they close at least PARTIAL); unexplained.
-
-    matched: (shrink, closed) on the matched evidence when only matched tests detected the gap
-    (closed: no fired test fires any more given the selected effects)."""
-    if not detected:
-        return "no_gap", float("nan")
-    if matched is not None:
-        s, closed = matched
-        s = s if selected else 0.0
-    else:
-        s = gap.shrink(g0, g_final) if selected else 0.0
-        closed = g_final <= thr or (np.isfinite(s) and s >= EXPLAINED)
-    if not selected:
-        return "unexplained", s
-    if closed and np.isfinite(first_shrink) and first_shrink >= FIRST_ALONE:
-        return "explained", s
-    if np.isfinite(s) and s >= PARTIAL:
-        return "partially_explained", s
-    return "unexplained", s
-
-
-__all__ = ["Attribution", "EffectResult", "effect_testable", "verdict", "Candidate", "MeanForm"]
+__all__ = ["Attribution", "EffectResult", "effect_testable", "Candidate", "MeanForm"]

@@ -9,6 +9,7 @@ between training blocks test the model on the same conditions without having fit
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -44,6 +45,15 @@ class Frame:
     @property
     def n(self) -> int:
         return int(self.t.shape[0])
+
+    @cached_property
+    def m_smooth(self) -> np.ndarray:
+        """The raw magnetometer averaged over 3 samples: where the effects' forms are read when
+        the fit inverts them (:func:`.model._effect_offsets`), so the noise is not passed
+        through the form's slope a second time."""
+        from ..sim.trajectory import moving_average
+
+        return moving_average(self.m, 3)
 
     @property
     def test(self) -> np.ndarray:

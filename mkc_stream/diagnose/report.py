@@ -55,6 +55,12 @@ def text(diag, source="") -> str:
     info = diag.info
     L.append(f"mkc-stream diagnose: {source}".rstrip(": "))
     L.append(f"  {headline(diag)}")
+    basis = getattr(diag, "basis", None)
+    if basis is not None and basis.rule:
+        # the figures the verdict was decided from, beside it
+        L.append(f"  because       : {basis.rule}")
+        for note in basis.notes:
+            L.append(f"                  then {note}")
     dec = f", decimated by {info['decimation']}" if info.get("decimation", 1) > 1 else ""
     L.append(f"  recording     : {info['samples']} samples over {info['duration_s']:.1f} s{dec}; "
              f"aux used: {', '.join(info['aux_used']) or 'none'}")
@@ -122,6 +128,9 @@ def text(diag, source="") -> str:
             L.append(f"      {why}")
     if diag.excluded:
         L.append(f"  left out of the library on request: {', '.join(diag.excluded)}")
+        for d in getattr(diag, "dropped", ()):
+            if d["name"] not in diag.excluded and d["reason"].startswith("left out with"):
+                L.append(f"    and {d['name']}: {d['reason']}")
     L.append(f"  ({info['replicas']} replicas, profile {info['profile']}, {info['seconds']:.1f} s)")
     return "\n".join(L)
 

@@ -52,10 +52,12 @@ class Scope:
     def effect_testable(self, effect, evidence):
         """(testable, reason): the registry's own test, then the calibration's."""
         ok, why = effect.testable(evidence)
+        if not self.accepted and effect.name not in CALIBRATION_FREE_EFFECTS:
+            # both reasons when the recording also lacks what the effect needs
+            return False, (f"its form reads the baseline calibration, which the calibrator rejects ({self.reason})"
+                           + ("" if ok else f"; also, {why}"))
         if not ok:
             return False, why
-        if not self.accepted and effect.name not in CALIBRATION_FREE_EFFECTS:
-            return False, f"its form reads the baseline calibration, which the calibrator rejects ({self.reason})"
         return True, why
 
     def tested(self) -> str:

@@ -1,7 +1,8 @@
 """The effect library: ``EFFECTS[name]`` for every effect the simulator can add and the diagnoser
 can test.
 
-One module per effect family (thermal, electrical, drift, nonlinear, alignment, noise, timing).
+One module per effect family (thermal, electrical, drift, nonlinear, alignment, noise, timing,
+field_gradient).
 Each effect is one :class:`~.base.Effect` declaration in its family's module, holding both its
 forward model (the simulator's) and its diagnosis form (the diagnoser's, :mod:`.form`); the
 diagnoser indexes the forms from here. To add an effect: write its forward model and its form in
@@ -10,11 +11,11 @@ family module is also listed in FAMILIES below. Names follow docs/spec/machine-o
 """
 from __future__ import annotations
 
-from . import alignment, drift, electrical, noise, nonlinear, thermal, timing
+from . import alignment, drift, electrical, field_gradient, noise, nonlinear, thermal, timing
 from .base import STAGES, Effect, Evidence, Param, SimContext
 
 #: the family modules, in the library's order
-FAMILIES = (thermal, electrical, drift, nonlinear, alignment, noise, timing)
+FAMILIES = (thermal, electrical, drift, nonlinear, alignment, noise, timing, field_gradient)
 
 EFFECTS: dict[str, Effect] = {e.name: e for module in FAMILIES for e in module.EFFECTS}
 

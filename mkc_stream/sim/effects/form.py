@@ -38,6 +38,7 @@ class MeanForm:
     k: int
     magnitude: Callable        # (env, design, theta) -> {"value": v, "unit": u, ...}
     alias_of: str | None = None    # another effect with the same observable (reported as ambiguous)
+    contains: tuple = ()           # effects this form holds as a special case (left out with them)
 
     @property
     def kind(self) -> str:

@@ -2,13 +2,18 @@
 
 * scale_nonlinearity: each axis bends cubically, (m_j - b_j) -> (m_j - b_j) + beta_j ((m_j - b_j)/50 uT)^3;
   beta is the departure at 50 uT, typically 10-500 nT (AMR and Hall parts near full scale).
+* sensor_compression: each axis compresses smoothly towards its range, about the sensor's own
+  zero, m_j -> m_j - d_j (m_j / 50 uT)^3 with d the departure at 50 uT (0.2-5 uT: a sensor
+  driven near saturation). The sensor's zero is not the hard-iron centre: with x = m - b,
+  (x + b)^3 = x^3 + 3 b x^2 + 3 b^2 x + b^3, so it leaves an even (quadratic) term per axis
+  beside the odd (cubic) one (the linear part is absorbed by the calibration).
 * saturation: the output clips at +-limit (the ADC or the sensor range); 30-5000 uT.
 * higher_order_soft_iron: the platform iron's magnetisation has a second-order term in the
   field, dm = Q(B, B) / 50 uT; q is its RMS over all directions at 50 uT (0.05-1 uT).
 * hysteresis: magnetisation lags the field; the library's form is -h tanh(dm_j/dt / rate)
   per axis, h the half-width of the loop (0.02-0.5 uT).
 
-Diagnosis: the cubic gain, the quadratic soft iron (as the five degree-2 harmonics of the field
+Diagnosis: the cubic gain, the per-axis cubic and quadratic terms of a compression, the quadratic soft iron (as the five degree-2 harmonics of the field
 direction per axis) and the hysteresis (on a grid of rates) are linear in their coefficients;
 saturation is found as pile-ups at the extremes of each axis, whose samples are then left out.
 """
@@ -25,6 +30,11 @@ F_REF = 50.0   # uT: the field at which nonlinearity magnitudes are quoted
 def _nonlin_forward(ctx: SimContext, bx, by, bz):
     beta = vec(bx, by, bz) * 1e-3
     ctx.m += beta * ((ctx.m - ctx.b) / F_REF) ** 3
+
+
+def _compression_forward(ctx: SimContext, dx, dy, dz):
+    d = vec(dx, dy, dz)
+    ctx.m -= d * (ctx.m / F_REF) ** 3
 
 
 def _saturation_forward(ctx: SimContext, limit):
@@ -74,6 +84,29 @@ def _nonlin_G(env, d):
 def _nonlin_magnitude(env, d, th):
     out = vec_magnitude(env, th, 1.0, True, "")
     out["meaning"] = "departure at 50 uT per axis" if env.to_uT else "departure at the fitted field"
+    return out
+
+
+def _compression_G(env, d):
+    """Per axis, the odd and the even term about the hard-iron centre, each its departure at
+    50 uT: dm_j = a_j (x_j / F)^3 + c_j (x_j / F)^2, x = m - b; theta = (a_x, a_y, a_z, c_x, c_y, c_z)."""
+    def g(frame, m, st):
+        x = (m - st.b) / env.F_ref
+        return np.concatenate([diag(x ** 3), diag(x ** 2)], axis=2)
+    return g
+
+
+def _compression_magnitude(env, d, th):
+    th = np.asarray(th, dtype=float)
+    out = vec_magnitude(env, th, 1.0, False, "")
+    # a compression about a point z below the centre, -d (x + z)^3, has cubic -d and quadratic
+    # -3 d z / F: z_j = F c_j / (3 a_j) (the raw hard iron when that point is the raw zero)
+    z = [float(env.F_ref * c / (3.0 * a)) if abs(a) > 1e-12 else None for a, c in zip(th[:3], th[3:])]
+    out.update(cubic=out["vector"][:3], quadratic=out["vector"][3:],
+               centre_from_zero=[None if v is None else env.field_unit(v)[0] for v in z],
+               meaning=("per-axis cubic and quadratic departures at 50 uT about the hard-iron centre; "
+                        "centre_from_zero: that centre measured from the point the compression is about"
+                        if env.to_uT else "per-axis cubic and quadratic departures at the fitted field"))
     return out
 
 
@@ -187,6 +220,14 @@ SCALE_NONLINEARITY = Effect(
     form=MeanForm(single_design, _nonlin_G, 3, _nonlin_magnitude),
     doc="per-axis cubic gain error")
 
+SENSOR_COMPRESSION = Effect(
+    name="sensor_compression", family="nonlinear", stage="sensor",
+    params=(Param("dx", "uT", 0.2, 5.0, 3.0, "compression at 50 uT, x"),
+            Param("dy", "uT", 0.2, 5.0, 3.0), Param("dz", "uT", 0.2, 5.0, 3.0)),
+    needs=(), forward=_compression_forward, testable=lambda ev: coverage_ok(ev, 0.5),
+    form=MeanForm(single_design, _compression_G, 6, _compression_magnitude, contains=("scale_nonlinearity",)),
+    doc="m -> m - d (m / 50 uT)^3 per axis about the sensor's zero (odd and even terms about the centre)")
+
 SATURATION = Effect(
     name="saturation", family="nonlinear", stage="range",
     params=(Param("limit", "uT", 30.0, 5000.0, 60.0, "output range +-limit"),),
@@ -211,4 +252,4 @@ HYSTERESIS = Effect(
     form=MeanForm(_hysteresis_designs, _hysteresis_G, 3, _hysteresis_magnitude),
     doc="-width tanh(dm/dt / rate) per axis")
 
-EFFECTS = (SCALE_NONLINEARITY, SATURATION, HIGHER_ORDER_SOFT_IRON, HYSTERESIS)
+EFFECTS = (SCALE_NONLINEARITY, SENSOR_COMPRESSION, SATURATION, HIGHER_ORDER_SOFT_IRON, HYSTERESIS)
