@@ -5,7 +5,7 @@ import sys
 import time
 
 from .calreport import calibration_lines, status_line
-from .flightcal import add_attitude_options, all_instances, attitude_calibrate, wants_attitude
+from .flightcal import add_attitude_options, all_instances, attitude_calibrate, wants_attitude, write_flight_plots
 from .common import (EXIT_OK, EXIT_REJECTED, Outputs, Progress, add_json_option, add_quiet_option, add_window_options,
                      check_plot_extra, compiled_calibrator, load_recording, write_json)
 
@@ -65,18 +65,21 @@ def cmd_calibrate(args) -> int:
     check_plot_extra(args.plot)
     if args.all_instances:
         outputs = Outputs()
+        plots = []
         obj, ok, calibrations = all_instances(args, args.recording, None if args.quiet else
-                                              (sys.stderr if args.json == "-" else sys.stdout))
+                                              (sys.stderr if args.json == "-" else sys.stdout), plots)
         _write_params(args, outputs, calibrations, None)
         if args.json:
             outputs.attempt(args.json, write_json, obj, args.json)
+        write_flight_plots(outputs, plots, args.recording)
         return outputs.done(EXIT_OK if ok else EXIT_REJECTED)
     rec = load_recording(args.recording)
     unit = rec.mag_unit
     counts = rec.counts()
     outputs = Outputs()
     if not args.stream and wants_attitude(args, rec):
-        obj, fc, lines = attitude_calibrate(args, rec, unit, counts)
+        plots = []
+        obj, fc, lines = attitude_calibrate(args, rec, unit, counts, plots)
         if not args.quiet:
             out = sys.stderr if args.json == "-" else sys.stdout
             print(f"mkc-stream calibrate --attitude: {args.recording}", file=out)
@@ -88,6 +91,7 @@ def cmd_calibrate(args) -> int:
             obj["units"] = {"mag": unit}
             obj["recording"] = str(args.recording)
             outputs.attempt(args.json, write_json, obj, args.json)
+        write_flight_plots(outputs, plots, args.recording)
         return outputs.done(EXIT_OK if fc is not None else EXIT_REJECTED)
     if args.stream:
         obj, acc = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)

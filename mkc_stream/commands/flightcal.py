@@ -3,7 +3,9 @@
 Chosen by default when the recording has an attitude (qw, qx, qy, qz) and a position (lat, lon) or
 --lat/--lon is given, since a flight rarely covers enough of the sphere for the ellipsoid fit; the
 ellipsoid fit with --no-attitude. Its result is the `calibrate` object of
-docs/spec/machine-output.md with `compensation` and `earth_field`.
+docs/spec/machine-output.md with `compensation` and `earth_field`. With --plot the report of each fit
+(flight/report_plot.py) is drawn after the result is written; --all-instances draws one PNG per
+compass, PATH's name with -instance<id> before its extension.
 """
 from __future__ import annotations
 
@@ -42,8 +44,11 @@ def wants_attitude(args, rec) -> bool:
     return has_q and has_pos
 
 
-def attitude_calibrate(args, rec, unit, counts):
-    """(json object, the FlightCalibration when accepted else None, report lines) of the attitude-aided fit."""
+def attitude_calibrate(args, rec, unit, counts, plots=None, plot_path=None, label=""):
+    """(json object, the FlightCalibration when accepted else None, report lines) of the attitude-aided fit.
+    plots: a list that receives (plot path, rec, FlightCalibration, label) for write_flight_plots when --plot is
+    given and the fit ran (accepted or rejected, as the ellipsoid fit's plot); plot_path: instead of --plot's;
+    label: added to the figure's title."""
     from .._validation import MKCInputError
     from ..calib.result import Rejection, no_calibration_json
     from ..flight import fit_flight
@@ -57,6 +62,8 @@ def attitude_calibrate(args, rec, unit, counts):
     except (MKCInputError, ValueError, ImportError) as exc:
         rejection = Rejection("not_observable" if isinstance(exc, MKCInputError) else "no_calibration", str(exc))
         return no_calibration_json(rejection, counts, method="mkc-em-attitude"), None, [status_line(rejection)]
+    if plots is not None and getattr(args, "plot", None):
+        plots.append((plot_path or args.plot, rec, fc, label))
     rejection = None
     if unit == "uT" and math.isfinite(fc.scale) and abs(fc.scale - 1.0) > FIELD_TOLERANCE:
         rejection = Rejection("rejected", f"fitted field {fc.scale:.3f} x the Earth-field model (more than "
@@ -101,9 +108,11 @@ def report_lines(fc, unit, rejection) -> list:
     return lines
 
 
-def all_instances(args, path, out):
+def all_instances(args, path, out, plots=None):
     """(json object, every compass accepted?, [(instance number, FlightCalibration)] of the accepted ones)
-    of --all-instances: every compass of a flight log calibrated, then compared."""
+    of --all-instances: every compass of a flight log calibrated, then compared. plots: as attitude_calibrate's,
+    one PNG per compass (report_plot.instance_path)."""
+    from ..flight.report_plot import instance_path
     from ..flight.compare import compare_compasses
     from ..ingest.flightlogs import inspect_flight_log, is_flight_log, read_flight_log
     from .common import UsageError
@@ -118,7 +127,10 @@ def all_instances(args, path, out):
     for cid in ids:
         rec = read_flight_log(f"{path}#instance={cid}")
         unit = rec.mag_unit
-        obj, fc, lines = attitude_calibrate(args, rec, unit, rec.counts())
+        plot_path = instance_path(args.plot, cid) if getattr(args, "plot", None) else None
+        obj, fc, lines = attitude_calibrate(args, rec, unit, rec.counts(), plots, plot_path, f"instance {cid}")
+        if plots and plots[-1][0] == plot_path:
+            lines.insert(-1, f"  plot          : {plot_path}")
         obj["instance"] = cid
         results.append(obj)
         if out is not None:
@@ -142,3 +154,17 @@ def all_instances(args, path, out):
             print(f"  INCONSISTENT  : instance {bad['id']}: {bad['reason']}", file=out)
     numbered = [(k, fc) for k, cid in enumerate(ids) for c, _, fc in accepted if c == cid]
     return {"instances": results, "comparison": comparison, "recording": str(path)}, len(accepted) == len(ids), numbered
+
+
+def write_flight_plots(outputs, plots, title):
+    """Draw each (path, rec, FlightCalibration, label) of plots (flight/report_plot.py) titled with the recording
+    and the label; a failed write goes to outputs (exit 2 at the end) and does not stop the others."""
+    import os
+
+    from ..flight.report_plot import plot_flight_report
+
+    for path, rec, fc, label in plots:
+        try:
+            outputs.attempt(path, plot_flight_report, rec, fc, path, title=f"{os.path.basename(str(title))} {label}".strip())
+        except ValueError as exc:             # a recording the calibration does not fit (not expected here)
+            outputs.failed.append(f"no plot written to {path}: {exc}")
