@@ -122,3 +122,20 @@ def test_a_rejected_baseline_still_tests_the_raw_values(level_flight):
     q = next(r for r in d.effects if r.name == "quantization")
     assert q.magnitude["value"] == pytest.approx(0.3, rel=0.05)
     assert "explained by quantization" in report.headline(d)
+
+
+def test_an_inclination_outside_the_angle_range_is_not_determined():
+    """The angle between the field and the specific force lies in 0-180 deg; a baseline fit that put
+    its constant at -40 deg (a flight log whose calibration the calibrator rejects) reported
+    "inclination -130.2 deg". Now it is not determined, and the report says so."""
+    import math
+
+    from mkc_stream.diagnose.report import _inclination_text
+
+    assert inclination_deg(math.radians(150.0)) == pytest.approx(60.0)
+    assert math.isnan(inclination_deg(math.radians(-40.2)))
+    assert math.isnan(inclination_deg(math.radians(181.0)))
+    text = _inclination_text({"inclination_deg": float("nan"), "field_gravity_angle_deg": -40.2})
+    assert "not determined" in text and "-40.2" in text
+    assert "inclination 60.0 deg" in _inclination_text({"inclination_deg": 60.0, "field_gravity_angle_deg": 150.0})
+    assert _inclination_text({"inclination_deg": None, "field_gravity_angle_deg": None}) == ""

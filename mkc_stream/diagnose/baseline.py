@@ -41,8 +41,11 @@ INCLINATION_CONVENTION = ("angle of the field below the horizontal, positive dow
 def inclination_deg(dip0: float) -> float:
     """The geomagnetic inclination (deg, positive down) from the model's field-to-specific-force
     angle dip0 (rad): I = dip0 - 90 deg (the specific force points up, so a field I below the
-    horizontal is 90 + I deg from it)."""
-    return float(np.degrees(dip0) - 90.0)
+    horizontal is 90 + I deg from it). NaN when dip0 lies outside 0-180 deg: the angle between two
+    vectors cannot, and a fit that put its constant there (a baseline the calibrator rejects, seen
+    at -40 deg on a flight log) has not determined the inclination."""
+    deg = float(np.degrees(dip0))
+    return deg - 90.0 if 0.0 <= deg <= 180.0 else float("nan")
 
 
 @dataclass

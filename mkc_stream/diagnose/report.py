@@ -30,6 +30,17 @@ ON_TESTABLE = {
 }
 
 
+def _inclination_text(b) -> str:
+    """', inclination ...' of the baseline, or why it is not given; '' without an accelerometer."""
+    inc = b.get("inclination_deg")
+    if inc is None and b.get("field_gravity_angle_deg") is None:
+        return ""
+    if inc is not None and inc == inc:
+        return f", inclination {inc:.1f} deg (below the horizontal, positive down)"
+    return (f", inclination not determined (the fitted field-to-gravity angle, "
+            f"{b.get('field_gravity_angle_deg', float('nan')):.1f} deg, lies outside 0-180)")
+
+
 def _fmt(x, nd=3):
     return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}g}"
 
@@ -67,8 +78,7 @@ def text(diag, source="") -> str:
     b = info["baseline"]
     L.append(f"  baseline      : field {b['field']:.4g} {info['unit']}, white noise {b['noise']:.3g} {info['unit']}, "
              f"bursts {b['burst_fraction']:.1%}"
-             + (f", inclination {b['inclination_deg']:.1f} deg (below the horizontal, positive down)"
-                if b.get("inclination_deg") is not None else ""))
+             + _inclination_text(b))
     cal = b.get("calibration") or {}
     if cal:
         cov = (cal.get("quality") or {}).get("coverage")
