@@ -79,6 +79,12 @@ NAMED_ARRAYS = [("icfg", "N_ICFG", CFG_INT_FIELDS), ("fcfg", "N_FCFG", CFG_REAL_
                 ("cnt", "N_COUNTERS", COUNTER_FIELDS), ("fst", "N_FSTATE", FIT_FIELDS)]
 
 
+
+def _c_table(ctype, name, size, values, literal) -> str:
+    """`static const CTYPE NAME[SIZE] = { ... };`, one value per line written by literal(v)."""
+    body = ",\n".join(f"    {literal(v)}" for v in values)
+    return f"static const {ctype} {name}[{size}] = {{\n{body}\n}};"
+
 def _hex(v: float) -> str:
     v = float(v)
     if v == float("inf"):
@@ -150,20 +156,13 @@ def render() -> str:
     p(f"/* Gauss-Legendre, {GL_ORDER} nodes mapped to [0, 1] (kernels/quadrature.py) */")
     p(f"#define MKC_GL_ORDER {GL_ORDER}")
     p("#ifdef MKC_TABLES_WANT_GL /* only the normaliser's translation unit holds the table */")
+    double = lambda v: f"{_hex(v)} /* {float(v)!r} */"     # noqa: E731
     p("#if MKC_ESTEP_DOUBLE")
-    p("static const double mkc_gl_nodes[MKC_GL_ORDER] = {")
-    p(",\n".join(f"    {_hex(v)} /* {float(v)!r} */" for v in GL_NODES))
-    p("};")
-    p("static const double mkc_gl_weights[MKC_GL_ORDER] = {")
-    p(",\n".join(f"    {_hex(v)} /* {float(v)!r} */" for v in GL_WEIGHTS))
-    p("};")
+    for name, values in (("mkc_gl_nodes", GL_NODES), ("mkc_gl_weights", GL_WEIGHTS)):
+        p(_c_table("double", name, "MKC_GL_ORDER", values, double))
     p("#else /* a single-precision E-step: the same values rounded to float (no conversion at run time) */")
-    p("static const float mkc_gl_nodes[MKC_GL_ORDER] = {")
-    p(",\n".join(f"    {_hex_float32(v)}" for v in GL_NODES))
-    p("};")
-    p("static const float mkc_gl_weights[MKC_GL_ORDER] = {")
-    p(",\n".join(f"    {_hex_float32(v)}" for v in GL_WEIGHTS))
-    p("};")
+    for name, values in (("mkc_gl_nodes", GL_NODES), ("mkc_gl_weights", GL_WEIGHTS)):
+        p(_c_table("float", name, "MKC_GL_ORDER", values, _hex_float32))
     p("#endif")
     p("#endif")
     p("")
