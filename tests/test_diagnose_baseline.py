@@ -139,3 +139,29 @@ def test_an_inclination_outside_the_angle_range_is_not_determined():
     assert "not determined" in text and "-40.2" in text
     assert "inclination 60.0 deg" in _inclination_text({"inclination_deg": 60.0, "field_gravity_angle_deg": 150.0})
     assert _inclination_text({"inclination_deg": None, "field_gravity_angle_deg": None}) == ""
+
+
+def test_samples_that_give_no_ellipsoid_are_a_rejected_baseline_not_an_error(level_flight, monkeypatch):
+    """When the baseline fit finds no ellipsoid (a real bag and a px4log whose quadric was
+    indefinite), the diagnosis used to stop with an error. It is a rejected baseline with that
+    reason around a sphere stand-in, and what needs no calibration is still tested: here the
+    0.3 uT rounding of the values."""
+    from mkc_stream.calib import fit as fit_module
+    from mkc_stream.calib.ellipsoid import EllipsoidError
+
+    def no_ellipsoid(*args, **kwargs):
+        raise EllipsoidError("the fitted quadric is not an ellipsoid: A is indefinite")
+
+    rec = simulate(level_flight, SensorModel(noise=0.1, burst_fraction=0.01), seed=2,
+                   effects=[("quantization", {"lsb": 0.3})]).recording
+    monkeypatch.setattr(fit_module, "fit_ellipsoid", no_ellipsoid)
+    d = diagnose(rec, replicas=24)
+    assert d.verdict == "baseline_rejected"
+    cal = d.to_json()["info"]["baseline"]["calibration"]
+    assert cal["accepted"] is False and cal["rejection"]["code"] == "not_ellipsoid"
+    assert "no ellipsoid" in cal["reason"] and "indefinite" in cal["reason"]
+    assert d.info["scope"]["verdict_on_testable"] == "explained" and d.selected == ["quantization"]
+    q = next(r for r in d.effects if r.name == "quantization")
+    assert q.magnitude["value"] == pytest.approx(0.3, rel=0.05)
+    assert all(not r.testable for r in d.effects if r.name not in CALIBRATION_FREE_EFFECTS)
+    assert "BASELINE REJECTED" in report.text(d)

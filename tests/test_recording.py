@@ -308,8 +308,10 @@ def test_load_broad_excerpt():
     assert rec.mag_unit == "uT" and "Laidig" in rec.meta["citation"]
     assert rec.rate_hz == pytest.approx(285.714, abs=1e-3)
     assert rec.t[1] == pytest.approx(1 / 285.714285714, rel=1e-9)
-    assert set(rec.aux) == {"ax", "ay", "az", "gx", "gy", "gz", "movement"}
+    assert set(rec.aux) == {"ax", "ay", "az", "gx", "gy", "gz", "px", "py", "pz", "movement"}
     assert abs(np.median(np.linalg.norm(rec.mag, axis=1)) - 44.5) < 2.5  # calibrated field ~44-46 uT
+    # the motion capture's position in m: the sensor is held about 1.2-1.8 m above the floor
+    assert rec.meta["units.pos"].startswith("m ") and 1.0 < np.nanmedian(rec.aux["pz"]) < 2.0
     acc = np.column_stack([rec.aux[k] for k in ("ax", "ay", "az")])
     assert abs(np.median(np.linalg.norm(acc, axis=1)) - 9.81) < 0.3
     assert set(np.unique(rec.aux["movement"])) == {0.0, 1.0}

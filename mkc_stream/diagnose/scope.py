@@ -76,11 +76,16 @@ class Scope:
                 "verdict_on_testable": verdict_on_testable}
 
 
-def baseline_scope(ellipsoid, unit: str, coverage: float) -> Scope:
+def baseline_scope(ellipsoid, unit: str, coverage: float, no_ellipsoid: str | None = None) -> Scope:
     """The calibrator's verdict on the baseline's calibration (its acceptance predicate, for the
-    recording's unit), and the coverage of the baseline's directions."""
+    recording's unit), and the coverage of the baseline's directions. no_ellipsoid: why the samples
+    gave no ellipsoid (the baseline is then a sphere stand-in, rejected with that reason)."""
     from ..calib.acceptance import AcceptanceRules, evaluate
+    from ..calib.result import Rejection
 
+    if no_ellipsoid is not None:
+        return Scope(accepted=False, rejection=Rejection("not_ellipsoid", no_ellipsoid),
+                     coverage=float(coverage), quality=dict(ellipsoid.quality))
     rejection = evaluate(ellipsoid.quality, float(ellipsoid.field), unit, AcceptanceRules())
     return Scope(accepted=rejection is None, rejection=rejection, coverage=float(coverage),
                  quality=dict(ellipsoid.quality))

@@ -191,7 +191,7 @@ def load_cave_survey_json(path) -> Recording:
 
 
 def _load_broad_arrays(path: pathlib.Path) -> dict:
-    names = ("imu_mag", "imu_acc", "imu_gyr", "movement", "sampling_rate")
+    names = ("imu_mag", "imu_acc", "imu_gyr", "opt_pos", "movement", "sampling_rate")
     if path.suffix.lower() in (".hdf5", ".h5"):
         try:
             import h5py
@@ -225,7 +225,8 @@ def load_broad(path) -> Recording:
     """One BROAD trial (``.mat`` via scipy, ``.hdf5`` via h5py); CC BY 4.0, cite Laidig et al. 2021.
 
     ``imu_mag`` [uT] -> ``mag``; ``imu_acc`` [m/s^2] -> ``ax, ay, az``; ``imu_gyr`` [rad/s] ->
-    ``gx, gy, gz``; ``movement`` -> aux ``movement`` (1 in motion phases); ``t = i /
+    ``gx, gy, gz``; ``opt_pos`` [m] (the motion capture's position of the sensor) -> ``px, py, pz``
+    (NaN where the markers were lost); ``movement`` -> aux ``movement`` (1 in motion phases); ``t = i /
     sampling_rate``. BROAD's magnetometer is already calibrated (|m| ~ 44-50 uT). Samples with a
     non-finite magnetometer value are bad rows (numbered by 1-based sample index).
     """
@@ -238,7 +239,7 @@ def load_broad(path) -> Recording:
     fs = float(np.asarray(d["sampling_rate"], dtype=np.float64).reshape(-1)[0])
     n = mag.shape[0]
     aux = {}
-    for key, cols in (("imu_acc", ("ax", "ay", "az")), ("imu_gyr", ("gx", "gy", "gz"))):
+    for key, cols in (("imu_acc", ("ax", "ay", "az")), ("imu_gyr", ("gx", "gy", "gz")), ("opt_pos", ("px", "py", "pz"))):
         if key in d:
             a = _nx3(d[key], key, path)
             for j, c in enumerate(cols):
@@ -259,6 +260,7 @@ def load_broad(path) -> Recording:
         "units.mag_note": "already calibrated by BROAD",
         "units.acc": "m/s^2",
         "units.gyr": "rad/s",
+        "units.pos": "m (optical motion capture)",
         "rate_hz": repr(fs),
         "origin": "https://github.com/dlaidig/broad",
         "licence": "CC BY 4.0",
