@@ -1,9 +1,9 @@
 """The attitude-aided calibration in fixed memory (mkc_stream/flight/streaming.py).
 
-Measured on simulated 10-minute flights at 25 Hz, attitude without yaw error (seeds 1-3: 0, 10, 25%
-disturbed), hard-iron error with a 512-sample window: direction-organised 0.25 / 0.40 / 1.27 uT, FIFO
-0.77 / 0.89 / 3.86 uT, the batch fit 0.04 / 0.25 / 0.41 uT. With 3 deg RMS of yaw error (which the
-batch fit models and the stream does not) the stream's error is 0.5-1.4 uT.
+Measured on simulated 10-minute flights at 25 Hz, attitude without yaw error, W = 512, seeds 1-6,
+hard-iron error median (max) at 0 / 10 / 25% disturbed: the pooled (accepted) calibration with the
+yaw term 0.14 (0.28) / 0.23 (0.30) / 0.23 (0.56) uT; the last window's own trial 0.39 (0.98) /
+0.91 (1.02) / 0.61 (1.27) uT (the module doc has the figures with a yaw error).
 """
 from __future__ import annotations
 
@@ -39,9 +39,11 @@ def test_the_stream_recovers_the_calibration_of_a_level_flight():
     fifo = _feed(FlightStreamCalibrator(tr["h_ned"], policy="fifo", **kw), mag, q, c)
     r = direction.calibration()
     err = np.linalg.norm(r["hard_iron"] - tr["b"])
-    assert err < 0.4
-    # the window organised by direction beats the last 512 samples (one straight leg may fill them)
-    assert np.linalg.norm(fifo.calibration()["hard_iron"] - tr["b"]) > 2 * err
+    assert err < 0.3
+    # the window organised by direction gives better trials than the last 512 samples (one straight leg
+    # may fill them); the pool takes every sample once under either policy
+    trial = np.linalg.norm(direction.calibration(pooled=False)["hard_iron"] - tr["b"])
+    assert np.linalg.norm(fifo.calibration(pooled=False)["hard_iron"] - tr["b"]) > 2 * trial
     assert np.abs(r["power"]["current"] - np.ravel(tr["K"])).max() < 0.1          # uT/A
     assert abs(r["scale"] - 1.0) < 0.02
     assert "A02=A20" in r["held"] and direction.stream.status == "ok"
@@ -60,6 +62,7 @@ def test_bad_rows_are_counted_not_fed():
     cal = FlightStreamCalibrator(sf.truth["h_ned"], ("current",), window=256)
     _feed(cal, mag, q, c)
     assert cal.stream.samples_rejected == 3 and cal.stream.samples_seen == 1997
+    assert cal.counts() == {"samples": 2000, "bad_frames": 3, "drops": 0, "gaps": 0}
 
 
 def test_arguments_are_checked():

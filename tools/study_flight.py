@@ -16,6 +16,10 @@ Methods (the first three on the vector model m = A R^T h_E + b + K c(t - tau), m
          changes the field, so here it runs on the residual of a plain least-squares vector fit without
          current terms (stage 1), and the calibration is refitted by least squares on the compensated
          field (stage 3). The lag is a grid of 5 ms.
+  stream the same vector model in fixed memory (mkc_stream/flight/streaming.py, as `calibrate --stream`):
+         window 512, E-step every 32, the pooled (accepted) calibration with its yaw-error term (one
+         offset per 10 s); no delay search (the current used without delay). Its record also holds
+         the last window's own trial (b_err_window), the estimate before pooling.
   magfit ArduPilot's MagFit (MAVProxy): offsets, symmetric soft iron, motor-current compensation (no
          delay) by SLSQP within its default bounds, minimising the mean vector error against the model
          field turned by the log's roll and pitch and the corrected sample's own heading
@@ -28,7 +32,7 @@ told from a mounting rotation), so each run also records that mean (the logged y
 deg), the mean heading error and the heading RMS about its mean (the part the calibration's shape owns).
 
     python tools/study_flight.py --seeds 4 [--minutes 30 30] [--rate 10] [--json out.json] [--plot out.png]
-        [--methods ours,ls,px4,magfit] [--first-seed 0] [--mounting-deg 0]
+        [--methods ours,ls,px4,magfit,stream] [--first-seed 0] [--mounting-deg 0] [--yaw-error-deg X]
         [--from-json a.json b.json --plot out.png]    # summarise and plot stored runs
 """
 from __future__ import annotations
@@ -44,6 +48,7 @@ import numpy as np
 from mkc_stream.flight import fit_flight
 from mkc_stream.flight.earthfield import earth_field
 from mkc_stream.flight.simulated import simulated_flight
+from mkc_stream.flight.streaming import recording_inputs
 from mkc_stream.flight.vector_fit import VectorFitSettings, fit_vector, rotation_matrices
 
 try:                                   # run as a script (tools/ on sys.path) or imported from the repository root
@@ -54,8 +59,9 @@ except ImportError:                    # pragma: no cover
 PLACES = [(-35.0, 149.0, 600.0), (10.0, -84.0, 1200.0), (47.4, 8.5, 500.0), (65.0, -18.0, 100.0)]
 PX4_MAX_LAG = 0.08
 PX4_LAG_STEP = 0.005
-METHODS = ("ours", "ls", "px4", "magfit")
-LABELS = {"ours": "ours (MKC-EM)", "ls": "least squares", "px4": "PX4 method", "magfit": "MagFit"}
+METHODS = ("ours", "ls", "px4", "magfit", "stream")
+LABELS = {"ours": "ours (MKC-EM)", "ls": "least squares", "px4": "PX4 method", "magfit": "MagFit",
+          "stream": "ours, streaming"}
 
 
 def px4_power_compensation(t, mag, q, h_ned, current):
@@ -121,19 +127,31 @@ def random_truth(rng):
                 delay=float(rng.uniform(0.0, 0.05)), yaw_error_deg=float(rng.uniform(2.0, 5.0)))
 
 
+def stream_fit(rec, ef):
+    """The attitude-aided stream over the recording: (A, b, K, delay 0, the last window's trial b)."""
+    cal, mag, q, power, _ = recording_inputs(rec, earth=ef)
+    for s in range(0, mag.shape[0], 1000):
+        cal.learn_many(mag[s:s + 1000], q[s:s + 1000], None if power is None else power[s:s + 1000])
+    A, b, K = cal.parameters(pooled=cal.accepted is not None)
+    return A, b, K[:, 0], 0.0, cal.parameters(pooled=False)[1]
+
+
 def rotation_z(deg) -> np.ndarray:
     a = math.radians(deg)
     return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
-def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0):
+def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0, yaw_error_deg=None):
     """One flight and every method on it; mounting_deg: the magnetometer turned by this angle about the
-    body's z axis (a mounting rotation: S becomes Rz S, so A = S^-1 is no longer symmetric)."""
+    body's z axis (a mounting rotation: S becomes Rz S, so A = S^-1 is no longer symmetric);
+    yaw_error_deg: the logged yaw's RMS error instead of the drawn 2-5 deg."""
     rng = np.random.default_rng(1000 + seed)
     lat, lon, alt = PLACES[seed % len(PLACES)]
     ef = earth_field(lat, lon, alt, 2026.5)
     duration = 60.0 * float(rng.uniform(*minutes))
     tr = random_truth(rng)
+    if yaw_error_deg is not None:
+        tr["yaw_error_deg"] = float(yaw_error_deg)
     if mounting_deg:
         tr["soft_iron"] = rotation_z(mounting_deg) @ tr["soft_iron"]
     f = simulated_flight(duration=duration, rate=rate, seed=seed, h_ned=tuple(ef.ned_uT), disturbed=disturbed,
@@ -155,6 +173,9 @@ def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0):
                 A, b, K, delay = px4_power_compensation(rec.t, rec.mag, q, ef.ned_uT, rec.aux["current"])
             elif name == "magfit":
                 A, b, K, delay = magfit_peer(rec, q, ef.ned_uT)
+            elif name == "stream":
+                A, b, K, delay, b_window = stream_fit(rec, ef)
+                extra["b_err_window"] = float(np.linalg.norm(b_window - truth["b"]))
             else:
                 c = fit_flight(rec, earth=ef, robust=(name == "ours"))
                 A, b, K, delay = c.fit.A, c.hard_iron, c.current, c.delay_s
@@ -189,6 +210,10 @@ def summarise(runs):
                          f"{f['delay_err_ms'].max():.1f} ms | heading RMS median {np.median(f['heading_rms_deg']):.2f} "
                          f"max {f['heading_rms_deg'].max():.2f} deg, about its mean median "
                          f"{np.median(f['heading_rms_about_mean_deg']):.2f} max {f['heading_rms_about_mean_deg'].max():.2f}")
+            if m == "stream" and all("b_err_window" in r[m] for r in rs):
+                bw = np.array([r[m]["b_err_window"] for r in rs])
+                lines.append(f"disturbed {dist:4.0%} stream: the last window's own trial (before pooling) hard iron err "
+                             f"median {np.median(bw):.3f} max {bw.max():.3f} uT")
         peers = [m for m in ("magfit", "px4") if m in med]
         if "ours" in med and peers:
             best = min(med[m] for m in peers)
@@ -253,6 +278,8 @@ def main(argv=None):
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of " + ",".join(METHODS))
     ap.add_argument("--mounting-deg", type=float, default=0.0,
                     help="the magnetometer turned by this angle (deg) about the body's z axis (default 0)")
+    ap.add_argument("--yaw-error-deg", type=float, default=None,
+                    help="the logged yaw's RMS error (deg) instead of one drawn in 2-5 deg per flight")
     ap.add_argument("--json", help="write every run's figures here (rewritten after each run)")
     ap.add_argument("--from-json", nargs="+", help="summarise (and plot) these runs' JSON files instead of running")
     ap.add_argument("--plot", help="write the study's PNG here (matplotlib)")
@@ -272,7 +299,7 @@ def main(argv=None):
     else:
         for seed in range(a.first_seed, a.first_seed + a.seeds):
             for dist in a.disturbed:
-                r = run(seed, dist, a.minutes, a.rate, methods, a.mounting_deg)
+                r = run(seed, dist, a.minutes, a.rate, methods, a.mounting_deg, a.yaw_error_deg)
                 runs.append(r)
                 print(f"seed {seed} disturbed {dist:.0%} {r['minutes']:.1f} min lat {r['lat']:g} log yaw error RMS "
                       f"{r['log_yaw_error_rms_deg']:.1f} mean {r['log_yaw_error_mean_deg']:+.2f} deg: " + "; ".join(

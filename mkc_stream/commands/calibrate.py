@@ -7,7 +7,7 @@ import time
 from .calreport import calibration_lines, status_line
 from .flightcal import add_attitude_options, all_instances, attitude_calibrate, wants_attitude, write_flight_plots
 from .common import (EXIT_OK, EXIT_REJECTED, Outputs, Progress, add_json_option, add_quiet_option, add_window_options,
-                     check_plot_extra, compiled_calibrator, load_recording, write_json)
+                     check_plot_extra, compiled_calibrator, fmt_vec, load_recording, write_json)
 
 
 def register(subparsers):
@@ -22,7 +22,10 @@ def register(subparsers):
     add_json_option(c)
     c.add_argument("--plot", metavar="PNG", type=writable_path, help="save a plot of the fit (needs the [plot] extra)")
     add_quiet_option(c, "no human report and no progress")
-    c.add_argument("--stream", action="store_true", help="replay through the streaming calibrator (MKC-EM on a window)")
+    c.add_argument("--stream", action="store_true",
+                   help="replay through the streaming calibrator (MKC-EM on a window): the ellipsoid model, or for a "
+                        "recording with an attitude and a position (or --lat/--lon, as --attitude) the attitude-aided "
+                        "vector model in fixed memory (no delay search; docs/flight.md)")
     add_window_options(c, when="--stream: ")
     c.add_argument("--params", metavar="TARGET:PATH", type=params_dest, action="append", default=[],
                    help="also write the accepted calibration as parameters: ardupilot:FILE.param, "
@@ -93,10 +96,27 @@ def cmd_calibrate(args) -> int:
             outputs.attempt(args.json, write_json, obj, args.json)
         write_flight_plots(outputs, plots, args.recording)
         return outputs.done(EXIT_OK if fc is not None else EXIT_REJECTED)
+    if args.stream and wants_attitude(args, rec):
+        obj, acc = _flight_stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
+        _write_params(args, outputs, acc, unit)
+        if args.json:
+            obj["recording"] = str(args.recording)
+            outputs.attempt(args.json, write_json, obj, args.json)
+        return outputs.done(EXIT_OK if acc is not None else EXIT_REJECTED)
     if args.stream:
+        from .flightcal import QUAT
+
+        fallback = None
+        if args.attitude is None and all(c in rec.aux for c in QUAT):
+            fallback = ("the recording has an attitude but no position: the ellipsoid stream; --lat/--lon for the "
+                        "attitude-aided one")
+            if not args.quiet:
+                print(f"mkc-stream calibrate --stream: note: {fallback}", file=sys.stderr if args.json == "-" else sys.stdout)
         obj, acc = _stream_calibrate(args, rec, unit, counts, sys.stderr if args.json == "-" else sys.stdout)
         _write_params(args, outputs, acc, unit)
         if args.json:
+            if fallback:
+                obj["notes"] = [fallback]
             obj["recording"] = str(args.recording)
             outputs.attempt(args.json, write_json, obj, args.json)
         return outputs.done(EXIT_OK if acc is not None else EXIT_REJECTED)
@@ -198,6 +218,90 @@ def _stream_calibrate(args, rec, unit, counts, out):
             for line in calibration_lines(acc, unit, first_accepted_at=cal.first_accepted_at):
                 p(line)
     return obj, acc
+
+
+def _flight_stream_calibrate(args, rec, unit, counts, out):
+    """Replay a recording with attitude through the attitude-aided stream (flight/streaming.py); returns
+    (json_obj, the accepted FlightStreamCalibration or None)."""
+    from .._validation import MKCInputError
+    from ..calib.result import Rejection, no_calibration_json
+    from ..flight.streaming import recording_inputs
+    from .common import UsageError
+
+    method = "mkc-em-attitude-stream"
+    if (args.lat is None) != (args.lon is None):
+        raise UsageError("--lat and --lon go together")
+    p = lambda x="": None if args.quiet else print(x, file=out)  # noqa: E731
+    p(f"mkc-stream calibrate --stream --attitude: {args.recording}")
+    try:
+        cal, mag, q, power, notes = recording_inputs(rec, lat=args.lat, lon=args.lon, alt=args.alt, date=args.date,
+                                                     yaw_only=args.yaw_only, window=args.window,
+                                                     estep_every=args.estep_every)
+    except (MKCInputError, ValueError, ImportError) as exc:
+        rejection = Rejection("no_calibration", str(exc))
+        p(f"  read          : {counts['samples']} samples, {counts['bad_frames']} bad rows skipped")
+        p(status_line(rejection))
+        return no_calibration_json(rejection, counts, method=method), None
+    N = len(mag)
+    chunk = max(1000, N // 50)
+    t0 = time.perf_counter()
+    progress = Progress(enabled=not args.quiet)
+    for start in range(0, N, chunk):
+        cal.learn_many(mag[start:start + chunk], q[start:start + chunk],
+                       None if power is None else power[start:start + chunk])
+        done = min(N, start + chunk)
+        state = "accepted" if cal.accepted is not None else cal.status_reason()[:50]
+        progress(f"  streaming {done}/{N} samples ({done / N:.0%}), {state}")
+    progress.end()
+    elapsed = time.perf_counter() - t0
+    evolution = [{"samples": ev.samples_seen, "accepted": ev.accepted,
+                  "hard_iron": None if ev.hard_iron is None else [float(v) for v in ev.hard_iron],
+                  "field": None if ev.field is None else float(ev.field), "reason": ev.reason or None}
+                 for ev in cal.history]
+    counts = dict(counts)
+    counts["bad_frames"] += cal.counts()["bad_frames"]
+    acc = cal.accepted
+    obj = no_calibration_json(cal.status(), counts) if acc is None else acc.to_json(counts=counts)
+    obj.update({"method": method, "window": args.window, "estep_every": args.estep_every,
+                "first_accepted_at_sample": cal.first_accepted_at, "evolution": evolution, "notes": notes,
+                "samples_per_second": N / elapsed if elapsed > 0 else None, "units": {"mag": unit}})
+    p(f"  read          : {counts['samples']} samples, {counts['bad_frames']} bad (non-finite field, attitude or "
+      f"power), window {args.window}, E-step every {args.estep_every}; {N / elapsed:,.0f} samples/s")
+    if acc is None:
+        p(status_line(cal.status()))
+    else:
+        for line in _flight_stream_lines(acc, unit, cal.first_accepted_at, notes):
+            p(line)
+    return obj, acc
+
+
+def _flight_stream_lines(acc, unit, first_accepted_at, notes) -> list:
+    """The human report of an accepted attitude-aided stream calibration."""
+    S = acc.soft_iron
+    lines = ["  method        : mkc-em-attitude-stream (vector model against the Earth field, the log's attitude, "
+             "fixed memory)",
+             f"  hard iron b   : {fmt_vec(acc.hard_iron, unit)}"
+             + ("" if not acc.uncertainty else f"  (sd {fmt_vec(acc.uncertainty['hard_iron_sd'], unit)}, one window)"),
+             f"  soft iron S   : {fmt_vec(S[0], '')}", f"                  {fmt_vec(S[1], '')}",
+             f"                  {fmt_vec(S[2], '')}   (m_cal = S (m_raw - b - K c), det S = 1)",
+             f"  field F       : {acc.field:.5g} {unit}"]
+    e = acc.earth
+    if e is not None:
+        lines.append(f"  Earth field   : {e.model}: {e.intensity_uT:.2f} uT, inclination {e.inclination_deg:.2f} deg, "
+                     f"declination {e.declination_deg:.2f} deg; fitted gain {acc.scale:.4f} {unit} per uT")
+    for name, k in acc.power.items():
+        per = "/A" if name == "current" else " at full throttle"
+        ci = acc.power_ci.get(name)
+        ci_txt = "" if ci is None else "  95%: " + ", ".join(f"[{a:.3g}, {b:.3g}]" for a, b in ci)
+        lines.append(f"  {name:<14s}: {fmt_vec(k, unit + per)}{ci_txt}")
+    lines.append(f"  misalignment  : {fmt_vec(acc.misalignment_deg, 'deg')} (rotation vector, sensor to attitude frame)")
+    lines.append(f"  pool          : {acc.pooled} checkpoints pooled; first accepted at sample {first_accepted_at}")
+    if acc.held:
+        lines.append(f"  held          : {', '.join(acc.held)} (chosen, not tested: the stream has no observability test)")
+    for note in notes:
+        lines.append(f"  note          : {note}")
+    lines.append(status_line(None))
+    return lines
 
 
 def cmd_methods(args) -> int:
