@@ -6,6 +6,7 @@
   fit (calib/confidence.py), so a steady stream keeps one calibration instead of the latest window's;
 - the pooled calibration (the default) averages the agreeing trials, so the final answer does not
   depend on where the stream started or on its rate beyond noise;
+- a pool that no longer fits the window (fails its fit gates) gives way to a better trial at once;
 - a real change of the hard iron is followed;
 - the reported uncertainty matches the scatter of repeated fits when samples are independent.
 """
@@ -16,6 +17,8 @@ import pytest
 
 from mkc_stream.calib.confidence import calibration_uncertainty, paired_gain
 from mkc_stream.calib.fit import fit_ellipsoid
+from mkc_stream.calib.quality import quality_figures
+from mkc_stream.calib.result import Calibration
 from mkc_stream.calib.streaming import MagCalibrator
 from mkc_stream.calib.synthetic import synthetic_mag
 from mkc_stream._validation import MKCInputError
@@ -89,6 +92,37 @@ def test_a_young_pool_follows_the_better_trial_and_a_grown_one_averages():
     assert abs(np.linalg.det(S) - 1.0) < 1e-12 and np.allclose(S, S.T, rtol=0, atol=1e-15)
     c = np.linalg.det(0.5 * (cal.pool_mean[3:12].reshape(3, 3) + cal.pool_mean[3:12].reshape(3, 3).T)) ** (1 / 3)
     assert abs(cal.accepted.field - cal.pool_mean[12] / c) < 1e-9 * cal.accepted.field
+
+
+def _grown_pool(s, raw, b, F):
+    """A calibrator whose pool holds 3 windows' worth of trials, all equal to (b, s.soft_iron, F)."""
+    cal = MagCalibrator(window=256, estep_every=32)
+    S = s.soft_iron
+    cal.pool_n = 3 * 256 // 32
+    cal.pool_mean = np.concatenate([b, S.ravel(), [F]])
+    cal.accepted = Calibration(np.array(b, dtype=float), S, F, {}, True)
+    return cal
+
+
+def test_a_pool_that_no_longer_fits_the_window_gives_way_to_the_better_trial():
+    """A grown pool that fails the window's fit gates (a wrong mode that had passed them, 12 uT off:
+    seen under 25% bursts) is replaced by a trial the window supports, as a young pool would be; a
+    pool that still fits the window (0.4 uT off) is not, however strongly the window prefers the trial."""
+    s = synthetic_mag(seed=31, N=256, burst_fraction=0.0)
+    raw = s.raw
+    q = quality_figures((raw - s.hard_iron) @ s.soft_iron.T, s.field, 2.0)
+    trial = Calibration(s.hard_iron.copy(), s.soft_iron, s.field, q, True)
+    wrong = _grown_pool(s, raw, s.hard_iron + [12.0, 0.0, 0.0], 1.1 * s.field)
+    assert not wrong._pool_fits(raw, trial)
+    wrong._offer_pooled(trial, raw)
+    assert wrong.pool_n == 1 and np.array_equal(wrong.accepted.hard_iron, s.hard_iron)
+    close = _grown_pool(s, raw, s.hard_iron + [0.4, 0.0, 0.0], s.field)
+    assert close._pool_fits(raw, trial)
+    close._offer_pooled(trial, raw)
+    gain, se = close.last_switch_test
+    assert gain > 3 * se                                        # the window prefers the trial strongly
+    assert close.pool_n == 3 * 256 // 32 and close.pool_streak == 1   # yet one trial does not restart it
+    assert np.array_equal(close.accepted.hard_iron, s.hard_iron + [0.4, 0.0, 0.0])
 
 
 def test_a_new_hard_iron_is_followed():

@@ -59,6 +59,9 @@ VECTORS = [
     # gross isolated spikes (3% at ~1000 uT): the high-breakdown restarts (restart_at, cold_start_at)
     ("syn_s7_b10_spikes", MAG, {"kind": "synthetic", "seed": 7, "N": 3000, "burst": 0.10, "spikes": 0.03,
                                 "spike_uT": 1000.0}, {}, True),
+    # a wrong mode that passed the gates under heavy bursts, then a pool that no longer fits the window
+    # (streaming.py _pool_fits) gives way to the better trial
+    ("syn_s4009_b25_pool_refit", MAG, {"kind": "synthetic", "seed": 4009, "N": 3000, "burst": 0.25}, {}, True),
     # NaN samples reach the calibrator only in-process (a recording file's reader drops such rows)
     ("syn_s6_b10_nan", MAG, {"kind": "synthetic", "seed": 6, "N": 3000, "burst": 0.10,
                              "nan": [[1, 97, 5], [0, 251, 11]]}, {}, False),

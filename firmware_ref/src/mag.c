@@ -9,6 +9,8 @@
  * calibration, a cold-start batch MKC-EM on the same window that must agree) promotes it to the
  * accepted one, which alone is applied. Watchdogs return to the sphere-fit normalisation after 4
  * checkpoints without an ellipsoid or 8 trials that do not fit.
+ * Size: over 600 lines: the one calibrator of calib/streaming.py (checkpoint, pool, normalisation,
+ * feeding), whose parts share its state; the numerics live in the other files.
  */
 #include "mkc_internal.h"
 
@@ -235,12 +237,26 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
     return dis;
 }
 
+/* _pool_fits (calib/streaming.py): 1 when the accepted calibration passes the fit gates (outlier
+ * fraction, residual) on the window, judged as a trial would be (the window's condition is the
+ * trial's: it does not depend on the calibration). */
+static int pool_fits(mkc_mag_t *g, int count, const mkc_mag_calibration *cal)
+{
+    const mkc_mag_calibration *a = &g->accepted;
+    mkc_real q[MKC_QUALITY];
+    mkc_mag_reason reason;
+    mkc__quality_figures(g, count, a->hard_iron, (const mkc_real(*)[3])a->soft_iron, a->field,
+                         cal->quality[MKC_Q_CONDITION], q);
+    return !(mkc__acceptance_check(g, q, a->field, -CR(1.0), &reason) & (MKC_FAIL_RESIDUAL | MKC_FAIL_OUTLIERS));
+}
+
 /* _offer_pooled (calib/streaming.py): the accepted calibration is the running mean of the trials
  * p_i = (b_i, S_i, F_i) that joined the pool, p <- p + (p_i - p) / min(n, N), N = MKC_POOL_WINDOWS W / K.
  * A trial joins unless the window supports it over the pool and it lies farther than
  * max_disagreement_rel * F from it, or supports it strongly (gain > Z_RESTART se); W / K such trials in
  * a row restart the pool from the latest.
- * While the pool holds fewer than W / K trials, a trial the window supports replaces it. */
+ * While the pool holds fewer than W / K trials, or when the pool fails the window's fit gates
+ * (pool_fits), a trial the window supports replaces it. */
 static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal)
 {
     mkc_acc member[13], n_cap, S[3][3], det, c;
@@ -259,8 +275,9 @@ static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal
         mkc_acc tol = (mkc_acc)g->rules.max_disagreement_rel * MKC_FABS_A(g->pool_mean[12]);
         mkc_acc d0 = member[0] - g->pool_mean[0], d1 = member[1] - g->pool_mean[1], d2 = member[2] - g->pool_mean[2];
         int far = MKC_SQRT_A(d0 * d0 + d1 * d1 + d2 * d2) > tol || MKC_FABS_A(member[12] - g->pool_mean[12]) > tol;
-        if (better && g->pool_n < per_window) {
-            g->pool_n = 0;             /* a young pool: the paired rule, the better trial replaces it */
+        /* a young pool, or one that no longer fits the window: the paired rule, the better trial replaces it */
+        if (better && (g->pool_n < per_window || !pool_fits(g, count, cal))) {
+            g->pool_n = 0;
         } else if (strong || (better && far)) {
             g->pool_streak += 1;
             if (g->pool_streak < per_window)

@@ -314,6 +314,10 @@ class MagCalibrator:
         and fresh data keep preferring another calibration) restart the pool from the latest. A young pool
         (fewer than W / K trials) follows the paired rule: a trial the window supports replaces it, so
         the first windows of a stream, fitted before the motion covered much, do not weigh on the pool.
+        So does a pool that fails the window's fit gates (_pool_fits): it no longer describes the data.
+        (Under heavy bursts a wrong mode 12 uT off can pass the gates for a while; the window favours the
+        correct trials that follow at only ~3 se, so the restart's W / K of them in a row would come
+        after the end of a 60 s stream.)
 
         Why: one window's estimate moves with that window's noise (hard-iron sd 0.05-0.1 uT per axis
         on a real recording), so the result depended on which window a run ended on; overlapping
@@ -332,8 +336,9 @@ class MagCalibrator:
             far = math.sqrt(db[0] * db[0] + db[1] * db[1] + db[2] * db[2]) > tol or \
                 abs(member[12] - self.pool_mean[12]) > tol
             strong = gain > Z_RESTART * se
-            if better and self.pool_n < per_window:
-                self.pool_n = 0                    # a young pool: the paired rule, the better trial replaces it
+            # a young pool, or one that no longer fits the window: the paired rule, the better trial replaces it
+            if better and (self.pool_n < per_window or not self._pool_fits(raw, cal)):
+                self.pool_n = 0
             elif strong or (better and far):
                 self.pool_streak += 1
                 if self.pool_streak < per_window:
@@ -349,6 +354,15 @@ class MagCalibrator:
         fresh = self.pool_n % per_window == 1 % per_window or self.accepted is None or self.accepted.uncertainty is None
         self._accept(pooled, raw, switched=self.pool_n == 1,
                      uncertainty=None if fresh else self.accepted.uncertainty)
+
+    def _pool_fits(self, raw, cal) -> bool:
+        """Whether the accepted calibration passes the fit gates (outlier fraction, residual) on the
+        window, judged as a trial would be (the window's condition is the trial's: it does not depend
+        on the calibration)."""
+        a = self.accepted
+        quality = quality_figures((raw - a.hard_iron) @ np.asarray(a.soft_iron).T, a.field, cal.quality["condition"])
+        rejection = evaluate(quality, a.field, self.unit, self.rules)
+        return rejection is None or not ("residual" in rejection.failed or "outliers" in rejection.failed)
 
     def _accept(self, cal, raw, switched=True, uncertainty=None):
         if uncertainty is None:
