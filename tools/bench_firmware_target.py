@@ -6,6 +6,7 @@ m = 1, W = 256).
     python tools/bench_firmware_target.py                       # double and all-float, syn_s3_b25
     python tools/bench_firmware_target.py --precisions double float floatonly --json out/target.json
     python tools/bench_firmware_target.py --board an505         # the Cortex-M33 board
+    python tools/bench_firmware_target.py --precisions floatonly --estep-every 128   # another E-step period
 
 It runs `make -C firmware_ref measure` (BUILD=--build), then per precision:
 - flash and RAM of BOARD_footprint_PRECISION.elf (target/footprint_main.c: the smallest firmware using
@@ -80,9 +81,10 @@ def build(build_dir: pathlib.Path | None = None, targets: tuple[str, ...] = ("me
         raise MeasureError(f"make {' '.join(targets)} failed:\n{proc.stdout[-3000:]}{proc.stderr[-3000:]}")
 
 
-def write_input(name: str, path: pathlib.Path, samples: int = 0) -> int:
-    """Golden vector `name`'s stored input as the harness's mkc_in.bin (first `samples`, 0: all).
-    Returns the samples written."""
+def write_input(name: str, path: pathlib.Path, samples: int = 0, estep_every: int = 0) -> int:
+    """Golden vector `name`'s stored input as the harness's mkc_in.bin (first `samples`, 0: all), with
+    the vector's configuration (estep_every > 0: that E-step period K instead). Returns the samples
+    written."""
     index = json.loads((GV.GOLDEN_DIR / "index.json").read_text())
     vectors = {v["name"]: v for v in index["vectors"]}
     if name not in vectors:
@@ -96,7 +98,7 @@ def write_input(name: str, path: pathlib.Path, samples: int = 0) -> int:
         mags = mags[:samples]
     cfg = v["config"]
     policy = {"fifo": 0, "direction": 1}[cfg["policy"]]
-    head = struct.pack("<8i", IN_MAGIC, IO_VERSION, cfg["window"], cfg["estep_every"], policy,
+    head = struct.pack("<8i", IN_MAGIC, IO_VERSION, cfg["window"], estep_every or cfg["estep_every"], policy,
                        int(inp["unit"] == "uT"), 0, len(mags))
     path.write_bytes(head + mags.tobytes())
     return len(mags)
@@ -274,11 +276,11 @@ def plugin_problem(plugin: pathlib.Path, elf: pathlib.Path, board: str = "an386"
 
 
 def measure(build_dir: pathlib.Path, board: str, precision: str, vector: str, samples: int, shift: int,
-            plugin: pathlib.Path | None = None, profile: bool = False) -> dict:
+            plugin: pathlib.Path | None = None, profile: bool = False, estep_every: int = 0) -> dict:
     fp = footprint(build_dir, board, precision)
     with tempfile.TemporaryDirectory(prefix="mkc_measure_") as tmp:
         work = pathlib.Path(tmp)
-        write_input(vector, work / "mkc_in.bin", samples)
+        write_input(vector, work / "mkc_in.bin", samples, estep_every)
         run = run_measure(build_dir / "qemu" / f"{board}_measure_{precision}.elf", work, board, shift, plugin,
                           profile)
     cal = run["calibration"]
@@ -289,7 +291,7 @@ def measure(build_dir: pathlib.Path, board: str, precision: str, vector: str, sa
     run.pop("per_sample_insns")
     run.pop("per_sample_flags")
     return {"board": board, "core": CORES[board], "precision": precision, "vector": vector, "shift": shift,
-            **fp, **run}
+            "estep_every": estep_every or None, **fp, **run}
 
 
 def markdown(rows: list[dict]) -> str:
@@ -324,6 +326,8 @@ def main(argv=None) -> int:
     ap.add_argument("--precisions", nargs="+", choices=sorted(PRECISION_NAMES), default=["double", "floatonly"])
     ap.add_argument("--vector", default="syn_s3_b25", help="golden vector to replay (W = 256, K = 32 by default)")
     ap.add_argument("--samples", type=int, default=0, help="replay only the first N samples (0: all)")
+    ap.add_argument("--estep-every", type=int, default=0, metavar="K",
+                    help="E-step period K instead of the vector's (how the checkpoints' share scales)")
     ap.add_argument("--shift", type=int, default=0, help="qemu -icount shift (2^shift virtual ns per instruction)")
     ap.add_argument("--build", type=pathlib.Path, help="build directory (default: firmware_ref/build)")
     ap.add_argument("--no-plugin", action="store_true",
@@ -346,14 +350,17 @@ def main(argv=None) -> int:
         use_plugin = None if args.no_plugin or why_no_plugin else plugin
         if args.profile and not use_plugin:
             raise MeasureError(f"--profile needs the instruction-counting plugin: {why_no_plugin or '--no-plugin'}")
+        if args.estep_every < 0:
+            raise MeasureError(f"--estep-every must be >= 1, not {args.estep_every}")
         rows = [measure(build_dir, args.board, p, args.vector, args.samples, args.shift, use_plugin,
-                        args.profile > 0) for p in args.precisions]
+                        args.profile > 0, args.estep_every) for p in args.precisions]
     except MeasureError as exc:
         print(f"measurement failed: {exc}", file=sys.stderr)
         return 1
     r0 = rows[0]
+    period = f", K = {args.estep_every}" if args.estep_every else ""
     print(f"{CORES[args.board]} (qemu-system-arm -M {BOARDS[args.board]} -icount shift={args.shift},sleep=off), "
-          f"W = 256, golden vector {args.vector}: {r0['samples']} samples, {r0['checkpoints']} checkpoints; "
+          f"W = 256{period}, golden vector {args.vector}: {r0['samples']} samples, {r0['checkpoints']} checkpoints; "
           f"bytes and instructions (-Os)\n")
     print(markdown(rows))
     print()

@@ -4,10 +4,11 @@
     python tools/measure_float_precision.py                 # every golden magnetometer vector
     python tools/measure_float_precision.py --vectors qmc5883l_filtered --json out.json
 
-Builds the all-float library (`-DMKC_USE_FLOAT -DMKC_ACC_DOUBLE=0 -DMKC_ESTEP_DOUBLE=0`: no double
-anywhere, for an FPU without double) at host capacity, so that every vector's window fits, and the
-double library beside it, in --build-dir (default: the system temporary directory). Then, per
-golden vector:
+Builds the all-float library (`-DMKC_USE_FLOAT -DMKC_ACC_DOUBLE=0 -DMKC_ESTEP_DOUBLE=0`, which puts
+the checkpoint code in float too: no double arithmetic, for an FPU without double) at host capacity,
+so that every vector's window fits, and the double library beside it, in --build-dir (default: the
+system temporary directory). `--extra-cflags=-DMKC_CHECKPOINT_DOUBLE=1` measures the all-float
+estimator with the checkpoint code in double instead. Then, per golden vector:
 
 - free-running: the all-float calibrator over the vector's stored input against the vector's
   checkpoints (the Python reference, which the double build reproduces bit for bit): the same
@@ -15,12 +16,17 @@ golden vector:
   theta (max |dtheta| / max |theta|), b (max |db| / F), S (max |dS| / max |S|) and F (|dF| / F);
   the worst of each, the first accepted checkpoint beyond --tol, and the stage where the run left
   the reference before it (the first checkpoint whose sigma or d is off by more than 1e-3:
-  "E-step sigma/d"; else whose theta is off by more than tol / 10: "normal-equation solve").
+  "E-step sigma/d"; else whose theta is off by more than tol / 10: "normal-equation solve"). A
+  departure the checkpoint code starts (a normalisation, a cold start from the sphere fit) shows
+  there as the stage it moved first, usually the E-step: the isolated stages below tell them apart.
 - stages, isolated at the vector's stored reference states (anchors): the same inputs through the
   float and the double build's normal-equation solve (mkc__spd_solve on the anchor's A, b), E-step
-  (mkc__estep_channel on the anchor window's squared residuals, warm-started as the stream does)
-  and normaliser (mkc__log_normaliser_grad at the anchor's sigma and a / d); the largest relative
-  difference of each.
+  (mkc__estep_channel on the anchor window's squared residuals, warm-started as the stream does),
+  normaliser (mkc__log_normaliser_grad at the anchor's sigma and a / d) and robust sphere fit
+  (mkc__robust_sphere_fit on the anchor's window: max |db| / F, |dF| / F); and at every reference
+  trial, the calibration from theta (mkc__geometry_from_theta, raw_geometry,
+  calibration_from_geometry: b / F, S, F); the largest relative difference of each. The sphere fit
+  and the calibration give both builds the same inputs: the reference's values rounded to float.
 
 Exit status 0 when every vector is within --tol with equal decisions, 1 otherwise, 2 when the
 library cannot be built. The linear (non-magnetometer) vectors are not part of this measure.
@@ -51,16 +57,18 @@ QUANTITIES = ("theta", "b", "S", "F")
 SIGMA_D_STAGE = 1e-3             # sigma or d off by more than this: the E-step left the reference
 
 
-def build(build_dir: pathlib.Path, extra_cflags: str = "") -> tuple[pathlib.Path, pathlib.Path]:
+def build(build_dir: pathlib.Path, extra_cflags: str = "", with_double: bool = True) -> tuple[pathlib.Path, pathlib.Path]:
     """(all-float, double) shared libraries at host capacity, built with firmware_ref/Makefile's flags.
 
     The all-float one is the Makefile's float shared-object rule with the all-float flags (and
-    extra_cflags, e.g. -DMKC_CHECKPOINT_DOUBLE=0) in its variant, in a build directory of its own,
-    so nothing of firmware_ref/build is touched."""
+    extra_cflags, e.g. -DMKC_CHECKPOINT_DOUBLE=1) in its variant, in a build directory of its own,
+    so nothing of firmware_ref/build is touched. with_double=False builds only the all-float one."""
     fo_dir, ref_dir = build_dir / "allfloat", build_dir / "double"
     flags = f"V_host_float_pic=-O2 {HOST_CAPACITY} {ALL_FLOAT} {extra_cflags} -fPIC"
-    for args in (["BUILD=" + str(fo_dir), flags, str(fo_dir / "libmkc_float.so")],
-                 ["BUILD=" + str(ref_dir), str(ref_dir / "libmkc_double.so")]):
+    jobs = [["BUILD=" + str(fo_dir), flags, str(fo_dir / "libmkc_float.so")]]
+    if with_double:
+        jobs.append(["BUILD=" + str(ref_dir), str(ref_dir / "libmkc_double.so")])
+    for args in jobs:
         proc = subprocess.run(["make", "-j2", "-C", str(FIRMWARE_DIR), *args], capture_output=True, text=True)
         if proc.returncode != 0:
             raise RuntimeError(f"make {' '.join(args)} failed:\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}")
@@ -216,12 +224,79 @@ def _normaliser(lib, sigma: float, A: float) -> np.ndarray:
     return np.array([logZ, ds.value, dA.value])
 
 
-def stages(meta: dict, fo, dbl) -> dict:
-    """Largest relative float-vs-double difference of each stage over the vector's anchors."""
+def _sphere_fit(lib, state: dict, window: int) -> np.ndarray | None:
+    """(b, F) of mkc__robust_sphere_fit on the anchor's window (its raw samples as floats), or None."""
+    from types import SimpleNamespace
+
+    from mkc_stream.cport.bindings import _aligned_state
+    from mkc_stream.cport.compare import load_reference_state
+
+    cfg = lib.MagConfig()
+    lib.dll.mkc_mag_config_default(C.byref(cfg))
+    cfg.stream.window = window
+    buf, addr = _aligned_state(lib.sizeof_mag)
+    if lib.dll.mkc_mag_init(addr, C.byref(cfg)) != 0:
+        raise RuntimeError(f"mkc_mag_init refused window {window}")
+    load_reference_state(SimpleNamespace(lib=lib, _addr=addr),
+                         dict(state, raw=state["raw"].astype(np.float32).astype(np.float64)))
+    count = int(state["cnt"][1])
+    b, F = (lib.real * 3)(), lib.real()
+    f = lib.dll.mkc__robust_sphere_fit
+    f.restype = C.c_int
+    f.argtypes = [C.c_void_p, C.c_int, C.c_void_p, C.c_void_p]
+    if count < 8 or not f(addr, count, b, C.byref(F)):
+        return None
+    return np.array([*b[:], F.value])
+
+
+class _Reason(C.Structure):
+    _fields_ = [("code", C.c_int32), ("fails", C.c_uint32), ("v", C.c_double * 6)]
+
+
+def _calibration(lib, creal, theta: np.ndarray, c0s0: np.ndarray) -> np.ndarray | None:
+    """(b, S, F) from theta in the normalisation c0s0 (mkc__geometry_from_theta, raw_geometry,
+    calibration_from_geometry, whose arithmetic type is creal), or None when theta is no ellipsoid."""
+    real = lib.real
+    th = (real * 9)(*map(float, theta))
+    c0 = (real * 3)(*map(float, c0s0[:3]))
+    geom, reason = (creal * 12)(), _Reason()
+    dll = lib.dll
+    dll.mkc__geometry_from_theta.argtypes = [C.c_void_p] * 3
+    if dll.mkc__geometry_from_theta(th, geom, C.byref(reason)) != 0:
+        return None
+    dll.mkc__raw_geometry.argtypes = [C.c_void_p, C.c_void_p, real]
+    dll.mkc__raw_geometry(geom, c0, float(c0s0[3]))
+    b, S, F = (creal * 3)(), (creal * 9)(), creal()
+    dll.mkc__calibration_from_geometry.argtypes = [C.c_void_p] * 4
+    dll.mkc__calibration_from_geometry(geom, b, S, C.byref(F))
+    return np.array([*b[:], *S[:], F.value])
+
+
+def _calibration_difference(xf: np.ndarray, xd: np.ndarray) -> float:
+    """max of |db| / F, max |dS| / max |S|, |dF| / F between two (b, S, F) vectors"""
+    F = abs(xd[12])
+    return float(max(np.max(np.abs(xf[:3] - xd[:3])) / F, np.max(np.abs(xf[3:12] - xd[3:12])) / np.max(np.abs(xd[3:12])),
+                     abs(xf[12] - xd[12]) / F))
+
+
+def stages(meta: dict, fo, dbl, checkpoint_double: bool = False) -> dict:
+    """Largest relative float-vs-double difference of each stage over the vector's anchors (the
+    calibration: over its trials). checkpoint_double: the float library's checkpoint code is double."""
     with np.load(GV.GOLDEN_DIR / meta["file"]) as z:
         g = {k: z[k] for k in z.files}
-    worst = {"normal-equation solve": 0.0, "E-step sigma": 0.0, "E-step d": 0.0, "normaliser": 0.0}
+    worst = {"normal-equation solve": 0.0, "E-step sigma": 0.0, "E-step d": 0.0, "normaliser": 0.0,
+             "sphere fit": 0.0, "calibration": 0.0}
+    f32 = np.float32
+    for k in np.flatnonzero(g["has_trial"]):
+        theta, c0s0 = g["theta"][k].astype(f32), g["c0s0"][k].astype(f32)
+        xf = _calibration(fo, C.c_double if checkpoint_double else C.c_float, theta, c0s0)
+        xd = _calibration(dbl, C.c_double, theta, c0s0)
+        if xf is not None and xd is not None:
+            worst["calibration"] = max(worst["calibration"], _calibration_difference(xf, xd))
     for st in _anchor_states(g):
+        sf, sd = _sphere_fit(fo, st, meta["config"]["window"]), _sphere_fit(dbl, st, meta["config"]["window"])
+        if sf is not None and sd is not None:
+            worst["sphere fit"] = max(worst["sphere fit"], float(np.max(np.abs(sf - sd)) / abs(sd[3])))
         A9 = st["A"].reshape(9, 9)
         A9 = np.tril(A9) + np.tril(A9, -1).T
         xf, xd = _spd_solve(fo, A9, st["b"]), _spd_solve(dbl, A9, st["b"])
@@ -246,7 +321,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-4, help="relative tolerance (default 1e-4)")
     ap.add_argument("--json", type=pathlib.Path, help="write the report as JSON here")
     ap.add_argument("--extra-cflags", default="",
-                    help="more flags for the all-float build, e.g. -DMKC_CHECKPOINT_DOUBLE=0 (use a --build-dir of "
+                    help="more flags for the all-float build, e.g. -DMKC_CHECKPOINT_DOUBLE=1 (use a --build-dir of "
                          "its own: the objects do not record their flags)")
     args = ap.parse_args(argv)
     try:
@@ -261,7 +336,7 @@ def main(argv=None) -> int:
           + "  decisions  first beyond tol (stage)")
     for meta in vectors:
         fr = free_running(meta, args.tol)
-        fr["stages"] = stages(meta, fo, dbl)
+        fr["stages"] = stages(meta, fo, dbl, "MKC_CHECKPOINT_DOUBLE=1" in args.extra_cflags)
         report[meta["name"]] = fr
         first = fr["first_beyond_tol"]
         where = "-" if first is None else f"sample {first['samples_seen']} ({first['departure']['stage']})"

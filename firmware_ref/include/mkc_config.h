@@ -38,12 +38,13 @@
  *   MKC_CHECKPOINT_DOUBLE the checkpoint code: sphere fit, geometry, eigen-decompositions, quality
  * Measured: with all three, one checkpoint of the float build from the reference's state differs
  * from it by <= 1e-5 (theta, calibration). -DMKC_ACC_DOUBLE=0 -DMKC_ESTEP_DOUBLE=0 gives the
- * all-float numerics for an FPU without double: its E-step evaluates the objective and gradient
+ * all-float build for an FPU without double, and with it the checkpoint code in float too
+ * (MKC_CHECKPOINT_DOUBLE defaults to 0 there): its E-step evaluates the objective and gradient
  * without cancellation (series, compensated sums) and learns curvature only from gradient changes
- * above float rounding (estep.c); free-running, its accepted calibrations stay within 5e-5 of the
- * reference on every golden vector (tools/measure_float_precision.py). -DMKC_CHECKPOINT_DOUBLE=0
- * moves the checkpoint code to float too (measured up to 6.5e-4 off on the QMC5883L recording,
- * whose own trajectory turns on the last bits of the trial centre). */
+ * above float rounding (estep.c); its sphere fit forms residuals and sums in float-float
+ * (sphere.c, mkc_ff.h) so that it rounds to the double build's floats. Free-running, its accepted
+ * calibrations stay within 5e-5 of the reference on every golden vector, with the same decisions
+ * (tools/measure_float_precision.py). */
 #ifdef MKC_USE_FLOAT
 typedef float mkc_real;
 #ifndef MKC_ACC_DOUBLE
@@ -67,9 +68,14 @@ typedef double mkc_acc;
 typedef float mkc_acc;
 #endif
 
-/* the checkpoint code's arithmetic (mkc_internal.h mkc_creal): double unless set to 0 */
+/* the checkpoint code's arithmetic (mkc_internal.h mkc_creal): float in the all-float build (no
+ * double arithmetic), double in the others; -DMKC_CHECKPOINT_DOUBLE=0 or 1 chooses in a float build */
 #ifndef MKC_CHECKPOINT_DOUBLE
+#if defined(MKC_USE_FLOAT) && !MKC_ACC_DOUBLE && !MKC_ESTEP_DOUBLE
+#define MKC_CHECKPOINT_DOUBLE 0
+#else
 #define MKC_CHECKPOINT_DOUBLE 1
+#endif
 #endif
 
 /* arithmetic type of the E-step (objective, normaliser, BFGS) */

@@ -5,7 +5,8 @@
  * centre r0 = -A^-1 B / 2 (38), shape M = A / (1 + r0^T A r0) so (m - r0)^T M (m - r0) = 1.
  * Calibration: S = F M^(1/2) with the symmetric square root Q diag(sqrt l) Q^T (cyclic Jacobi,
  * linalg.c), F = det(M)^(-1/6) the geometric-mean radius, so det S = 1. Computed in mkc_creal:
- * double, also in the float builds unless MKC_CHECKPOINT_DOUBLE=0 (a few hundred flops per checkpoint).
+ * double in the double and float builds, float in the all-float one (MKC_CHECKPOINT_DOUBLE, a few
+ * hundred flops per checkpoint).
  */
 #include "mkc_internal.h"
 
@@ -46,9 +47,9 @@ int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_re
     }
     eig3((const mkc_creal(*)[3])A, eigA, NULL);
     if (eigA[0] * eigA[2] <= CR(0.0)) {
-        reason->v[0] = eigA[0];
-        reason->v[1] = eigA[1];
-        reason->v[2] = eigA[2];
+        reason->v[0] = (double)eigA[0];
+        reason->v[1] = (double)eigA[1];
+        reason->v[2] = (double)eigA[2];
         return MKC_REASON_INDEFINITE;
     }
     if (mkc__solve3((const mkc_creal(*)[3])A, B, r0) != MKC_OK)
@@ -64,7 +65,7 @@ int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_re
             g->M[i][j] = A[i][j] / k;
     eig3((const mkc_creal(*)[3])g->M, lam, NULL);
     if (!(lam[0] > CR(0.0))) {
-        reason->v[0] = k;
+        reason->v[0] = (double)k;
         return MKC_REASON_EMPTY;
     }
     for (i = 0; i < 3; i++)
@@ -90,10 +91,25 @@ void mkc__calibration_from_geometry(const mkc__geometry *g, mkc_creal b[3], mkc_
     mkc_creal lam[3], Q[9][9], P[3][3], f;
     int i, j, k;
     eig3(g->M, lam, Q);
+#if MKC_CREAL_FLOAT
+    /* f = (l0 l1 l2)^(-1/6) = 1 / cbrt(sqrt(l0) sqrt(l1) sqrt(l2)): powf's exponent -1/6 is off by
+     * 3e-8 relative in float, which times |ln(l0 l1 l2)| (~40 for fields of ~1000 counts) is ~4 ulps
+     * of f; the cube root of the square roots is within ~1.5 ulps and cannot underflow before F^3 does */
+    {
+        mkc_creal r[3];
+        for (k = 0; k < 3; k++)
+            r[k] = sqrtf(lam[k]);
+        f = CR(1.0) / cbrtf(r[0] * r[1] * r[2]);
+        for (i = 0; i < 3; i++)
+            for (k = 0; k < 3; k++)
+                P[i][k] = f * (Q[i][k] * r[k]);
+    }
+#else
     f = MKC_POW_C(lam[0] * lam[1] * lam[2], -CR(1.0) / CR(6.0));
     for (i = 0; i < 3; i++)
         for (k = 0; k < 3; k++)
             P[i][k] = f * (Q[i][k] * MKC_SQRT_C(lam[k]));
+#endif
     for (i = 0; i < 3; i++)
         for (j = 0; j < 3; j++)
             S[i][j] = P[i][0] * Q[j][0] + P[i][1] * Q[j][1] + P[i][2] * Q[j][2];

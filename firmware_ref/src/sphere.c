@@ -6,10 +6,14 @@
  * calls LAPACK's SVD least squares; here the 4x4 normal equations are solved and then refined twice
  * with the residual recomputed from the data (semi-normal equations with refinement), which
  * reaches the accuracy of an orthogonal solver for these well-scaled columns without storing the
- * N x 4 matrix. Scratch: g->work (per-row sums), g->core.ebuf (residuals of the robust passes),
- * g->core.R (median scratch).
+ * N x 4 matrix. The all-float build (MKC_CHECKPOINT_DOUBLE=0) forms the residuals and G^T r in
+ * float-float (mkc_ff.h), so its fit rounds to the same floats as the double build's: the stream's
+ * normalisation and its cold starts begin there, and one ulp of the radius is enough to move a
+ * later E-step on a flat likelihood. Scratch: g->work (per-row sums), g->core.ebuf (residuals of
+ * the robust passes), g->core.R (median scratch).
  */
 #include "mkc_internal.h"
+#include "mkc_ff.h"
 
 /* the robust passes' selection: |r_k - med| <= thr (all rows when use_mask is 0) */
 typedef struct sel {
@@ -56,11 +60,70 @@ static int chol4(const mkc_creal N[4][4], const mkc_creal *r, mkc_creal *x)
     return 1;
 }
 
+#if MKC_CREAL_FLOAT
+/* Passes of the float build: the first solves in float (x = 0, so the residual is y), each
+ * refinement gains what a float Cholesky solve of the normal equations gives (~1e-6 relative
+ * times their condition, which a window covering part of the sphere raises to ~1e2): two reach
+ * the double build's float-rounded solution on every golden vector, the third is margin. */
+#define MKC_SPHERE_PASSES 4
+/* One pass over the selected rows u = (m - c) / scale: rhs = G^T (y - G x) with G's rows
+ * [2 u, 1] and y = |u|^2; N = G^T G on the first pass (float: it only sets how fast the passes
+ * converge). After the first, the residuals and their sums are float-float (x too): in float the
+ * residual would carry the rounding of |u|^2 (1/2 ulp of 1) into x, and the sum G^T r, whose
+ * terms cancel to the fit's noise, ~sqrt(n) ulps of them: either is enough to round the sphere's
+ * centre or radius to the neighbouring float. */
+static void sphere_pass(const mkc_mag_t *g, int count, const sel *m, const float *c, float scale, const mkc_ff *x,
+                        float N[4][4], float *rhs, int first)
+{
+    mkc_ff acc[4] = {{0.0f, 0.0f}, {0.0f, 0.0f}, {0.0f, 0.0f}, {0.0f, 0.0f}};
+    int k, j, p, q;
+    for (k = 0; k < count; k++) {
+        mkc_ff r = {0.0f, 0.0f};
+        float u[3], row[4];
+        if (!selected(g, m, k))
+            continue;
+        for (j = 0; j < 3; j++) {
+            u[j] = (g->raw[k][j] - c[j]) / scale;
+            row[j] = 2.0f * u[j];
+        }
+        row[3] = 1.0f;
+        if (first) {
+            r.hi = (u[0] * u[0] + u[1] * u[1]) + u[2] * u[2];
+            for (p = 0; p < 4; p++) {
+                acc[p].hi += row[p] * r.hi;
+                for (q = 0; q <= p; q++)
+                    N[p][q] += row[p] * row[q];
+            }
+            continue;
+        }
+        /* r = |u|^2 - (2 u^T x[0..2] + x[3]): a cascaded sum of exact products */
+        for (j = 0; j < 3; j++)
+            mkc__dot2_prod(&r, u[j], u[j]);
+        for (j = 0; j < 4; j++) {
+            mkc__dot2_prod(&r, -row[j], x[j].hi);
+            r.lo -= row[j] * x[j].lo;
+        }
+        r = mkc__ff_make(r.hi, r.lo);
+        for (p = 0; p < 4; p++) {
+            mkc__dot2_prod(&acc[p], row[p], r.hi);
+            acc[p].lo += row[p] * r.lo;
+        }
+    }
+    for (p = 0; p < 4; p++)
+        rhs[p] = acc[p].hi + acc[p].lo;
+}
+#else
+#define MKC_SPHERE_PASSES 3       /* the solve and two refinements, as the reference (calib/portable.py) */
+#endif
+
 /* sphere_fit on the selected rows of raw[:count]; returns 0 when the fit is not a sphere. */
 static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mkc_real *F_out)
 {
     mkc_real c[3] = {RC(0.0), RC(0.0), RC(0.0)}, ref[3], scale, F2, bb[3], kk;
     mkc_creal N[4][4], rhs[4], x[4] = {CR(0.0), CR(0.0), CR(0.0), CR(0.0)}, dx[4];
+#if MKC_CREAL_FLOAT
+    mkc_ff xf[4] = {{0.0f, 0.0f}, {0.0f, 0.0f}, {0.0f, 0.0f}, {0.0f, 0.0f}};
+#endif
     int k, j, p, q, it, nsel = 0;
     /* c = ref + (mag - ref).mean(axis=0), ref the first selected row: summing raw values far from
      * the origin directly loses ~0.1 count in float; numpy reduces axis 0 row by row */
@@ -96,7 +159,10 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
     for (p = 0; p < 4; p++)
         for (q = 0; q < 4; q++)
             N[p][q] = CR(0.0);
-    for (it = 0; it < 3; it++) {
+    for (it = 0; it < MKC_SPHERE_PASSES; it++) {
+#if MKC_CREAL_FLOAT
+        sphere_pass(g, count, m, c, scale, xf, N, rhs, it == 0);
+#else
         for (p = 0; p < 4; p++)
             rhs[p] = CR(0.0);
         for (k = 0; k < count; k++) {
@@ -118,10 +184,17 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
                         N[p][q] += row[p] * row[q];
             }
         }
+#endif
         if (!chol4((const mkc_creal(*)[4])N, rhs, dx))
             return 0;
-        for (p = 0; p < 4; p++)
+        for (p = 0; p < 4; p++) {
+#if MKC_CREAL_FLOAT
+            xf[p] = mkc__ff_add_f(xf[p], dx[p]);
+            x[p] = xf[p].hi;
+#else
             x[p] += dx[p];
+#endif
+        }
     }
     for (j = 0; j < 3; j++)
         bb[j] = (mkc_real)x[j];
@@ -205,6 +278,23 @@ mkc_real mkc__sphere_coverage_raw(const mkc_mag_t *g, int count, const mkc_real 
  * features' coordinates, |m'|^2 - 2 c^T m' = k divided by k = r^2 - |c|^2; 0 when k <= 0. */
 int mkc__sphere_theta(const mkc_creal *c, mkc_creal r, mkc_real *theta)
 {
+#if MKC_CREAL_FLOAT
+    /* k and the quotients in float-float, rounded once: the cold start begins here */
+    mkc_ff kf = {0.0f, 0.0f}, inv;
+    int j;
+    mkc__dot2_prod(&kf, r, r);
+    for (j = 0; j < 3; j++)
+        mkc__dot2_prod(&kf, -c[j], c[j]);
+    kf = mkc__ff_make(kf.hi, kf.lo);
+    if (!(isfinite(kf.hi) && kf.hi > 0.0f))
+        return 0;
+    inv = mkc__ff_div(mkc__ff_make(1.0f, 0.0f), kf);
+    theta[0] = theta[1] = theta[2] = inv.hi;
+    theta[3] = theta[4] = theta[5] = 0.0f;
+    for (j = 0; j < 3; j++)
+        theta[6 + j] = mkc__ff_mul_f(inv, -2.0f * c[j]).hi;
+    return 1;
+#else
     mkc_creal k = r * r - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
     if (!(isfinite(k) && k > CR(0.0)))
         return 0;
@@ -216,4 +306,5 @@ int mkc__sphere_theta(const mkc_creal *c, mkc_creal r, mkc_real *theta)
     theta[7] = (mkc_real)(-CR(2.0) * c[1] / k);
     theta[8] = (mkc_real)(-CR(2.0) * c[2] / k);
     return 1;
+#endif
 }

@@ -97,13 +97,42 @@ mkc_real mkc__mad_about_median(const mkc_real *x, int n, mkc_real *work, mkc_rea
     return RC(MKC_MAD_SCALE) * mkc__median(work, n);
 }
 
+#if MKC_CREAL_FLOAT && MKC_N_SECTORS == 12
+/* The sector of (x, y), both non-zero, by comparisons instead of atan2: sector k holds the
+ * longitudes atan2(y, x) in [-180 + 30 k, -150 + 30 k) degrees, so within each quadrant the two
+ * boundaries are at 30 and 60 degrees from the x axis, i.e. where |y| = |x| / sqrt(3) and
+ * |y| = sqrt(3) |x| (ties as the atan2 expression resolves them). As exact as atan2f (the comparisons
+ * round at 1 ulp; a direction that close to a boundary is either side in float anyway), and a
+ * tenth of its cost: the quality figures and the switching test take a cell per window sample. */
+static int sector_of(float x, float y)
+{
+    const float r3 = 1.7320508f;                 /* sqrt(3) */
+    if (y > 0.0f) {
+        if (x > 0.0f)
+            return r3 * y < x ? 6 : (y < r3 * x ? 7 : 8);
+        return r3 * y <= -x ? 11 : (y <= r3 * -x ? 10 : 9);
+    }
+    if (x > 0.0f)
+        return r3 * -y <= x ? 5 : (-y <= r3 * x ? 4 : 3);
+    return r3 * -y < -x ? 0 : (-y < r3 * -x ? 1 : 2);
+}
+#endif
+
 /* Cell of a unit vector as calib/quality.py direction_cells computes it (on u = v / |v|). */
 int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz)
 {
     mkc_real z = mkc__min_r(mkc__max_r(uz, RC(-1.0)), RC(1.0));
-    int band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS));
-    mkc_real lon = MKC_ATAN2_R(uy, ux) + RC(MKC_PI);
-    int sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
+    int band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS)), sector;
+#if MKC_CREAL_FLOAT && MKC_N_SECTORS == 12
+    if (ux != RC(0.0) && uy != RC(0.0)) {
+        sector = sector_of(ux, uy);
+    } else
+#endif
+    {
+        /* atan2 (in the all-float build only for a zero x or y: its signed zeros) */
+        mkc_real lon = MKC_ATAN2_R(uy, ux) + RC(MKC_PI);
+        sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
+    }
     band = band < MKC_N_BANDS - 1 ? band : MKC_N_BANDS - 1;
     sector = sector < MKC_N_SECTORS - 1 ? sector : MKC_N_SECTORS - 1;
     return band * MKC_N_SECTORS + sector;
