@@ -7,6 +7,10 @@
  */
 #include "mkc_internal.h"
 
+#if MKC_N_CELLS % 4 != 0
+#error "magwindow.c: some_cell_fuller reads the cell counts four at a time"
+#endif
+
 /* Cell 0..71 of a direction (need not be unit length; 0 for the zero vector). */
 int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
 {
@@ -24,29 +28,114 @@ int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
     return band * MKC_N_SECTORS + sector;
 }
 
-/* Slot for a new sample of direction `cell`. slot_age holds the low 32 bits of the samples seen
- * when each slot was written; "oldest" is the largest age counted back from now, which orders the
- * slots as the reference's int64 ages do while no sample stays in the window for 2^32 samples. */
-int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W)
+/* Four consecutive slot cells, or two consecutive cell counts, as one 32-bit word in any byte
+ * order (the tests below ask only "does some byte/lane ..."). GCC and Clang make the builtin copy
+ * one load on cores with unaligned loads and narrower loads on the others; elsewhere the bytes are
+ * assembled. */
+#if defined(__GNUC__)
+static uint32_t four_cells(const uint8_t *p)
 {
-    int c, s, fullest = 0, target, best = -1;
-    uint32_t now = (uint32_t)g->core.counters.seen, best_age = 0;
-    if (count < W)
-        return count;
-    for (c = 0; c < MKC_N_CELLS; c++)
-        if (g->cell_count[c] > g->cell_count[fullest])
-            fullest = c;
-    target = g->cell_count[cell] >= g->cell_count[fullest] ? cell : fullest;
-    for (s = 0; s < W; s++) {
+    uint32_t w;
+    __builtin_memcpy(&w, p, sizeof w);
+    return w;
+}
+static uint32_t two_counts(const uint16_t *p)
+{
+    uint32_t w;
+    __builtin_memcpy(&w, p, sizeof w);
+    return w;
+}
+#else
+static uint32_t four_cells(const uint8_t *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+static uint32_t two_counts(const uint16_t *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 16;
+}
+#endif
+
+/* Whether some cell holds more than v samples. It may answer yes wrongly when a count or v is 2^15
+ * or more (only in a window of W >= 2^15 samples); yes sends the caller to the full search, so
+ * the slot chosen is the reference's either way. In a word of
+ * two counts below 2^15, count + (0x7fff - v) sets its lane's top bit exactly when count > v and
+ * never carries into the other lane; a count of 2^15 or more sets that bit itself. */
+static int some_cell_fuller(const uint16_t *cc, unsigned v)
+{
+    const uint32_t add = (0x7fffu - v) * 0x00010001u;
+    uint32_t hit = 0;
+    int c;
+    if (v > 0x7fffu)
+        return 1;
+    for (c = 0; c < MKC_N_CELLS; c += 4) {
+        uint32_t lo = two_counts(cc + c), hi = two_counts(cc + c + 2);
+        hit |= lo | (lo + add) | hi | (hi + add);
+    }
+    return (hit & 0x80008000u) != 0;
+}
+
+/* The oldest of *best (age *best_age; -1: none yet) and the slots from..to-1 of cell `target`.
+ * Slots are visited in increasing order and only a strictly older slot replaces the best, so ties
+ * go to the lowest slot as in one full scan. */
+static int older_slot(const mkc_mag_t *g, int target, int from, int to, int best, uint32_t *best_age)
+{
+    uint32_t now = (uint32_t)g->core.counters.seen;
+    int s;
+    for (s = from; s < to; s++) {
         if (g->slot_cell[s] == target) {
             uint32_t age = now - g->slot_age[s];    /* modular: how long ago */
-            if (best < 0 || age > best_age) {
+            if (best < 0 || age > *best_age) {
                 best = s;
-                best_age = age;
+                *best_age = age;
             }
         }
     }
     return best;
+}
+
+/* Oldest slot of cell `target` among slot_cell[0..W-1]; -1 if none. slot_cell is read eight slots
+ * at a time and only a word of four holding the target is looked at slot by slot: with
+ * x = word ^ (target * 0x01010101), (x - 0x01010101) & ~x & 0x80808080 is nonzero exactly when
+ * some byte of x is zero (a borrow can mark a byte only above a zero byte). */
+static int oldest_slot_of_cell(const mkc_mag_t *g, int target, int W)
+{
+    const uint8_t *sc = g->slot_cell;
+    const uint32_t ones = 0x01010101u, highs = 0x80808080u, pattern = (uint32_t)target * ones;
+    uint32_t best_age = 0;
+    int s, best = -1;
+    for (s = 0; s + 8 <= W; s += 8) {
+        uint32_t x = four_cells(sc + s) ^ pattern, y = four_cells(sc + s + 4) ^ pattern;
+        uint32_t in_x = (x - ones) & ~x & highs, in_y = (y - ones) & ~y & highs;
+        if (in_x | in_y) {
+            if (in_x)
+                best = older_slot(g, target, s, s + 4, best, &best_age);
+            if (in_y)
+                best = older_slot(g, target, s + 4, s + 8, best, &best_age);
+        }
+    }
+    return older_slot(g, target, s, W, best, &best_age);    /* the last W % 8 slots */
+}
+
+/* Slot for a new sample of direction `cell`. slot_age holds the low 32 bits of the samples seen
+ * when each slot was written; "oldest" is the largest age counted back from now, which orders the
+ * slots as the reference's int64 ages do while no sample stays in the window for 2^32 samples.
+ * The target is the reference's: `cell` when its count is the largest, else the first fullest cell. */
+int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W)
+{
+    const uint16_t *cc = g->cell_count;
+    unsigned most = 0;
+    int c, target = cell;
+    if (count < W)
+        return count;
+    if (some_cell_fuller(cc, cc[cell])) {
+        for (c = 0; c < MKC_N_CELLS; c++)
+            most = cc[c] > most ? cc[c] : most;
+        if (cc[cell] < most)                /* the first fullest cell */
+            for (target = 0; cc[target] != most; target++)
+                ;
+    }
+    return oldest_slot_of_cell(g, target, W);
 }
 
 /* The cells of the window's samples around the current centre c0. */
