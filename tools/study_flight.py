@@ -30,9 +30,16 @@ delay error (ms), and the heading RMS (deg) of the calibrated noise-free field a
 log's attitude takes the log's mean yaw error over the flight into its rotation about z (it cannot be
 told from a mounting rotation), so each run also records that mean (the logged yaw minus the true yaw,
 deg), the mean heading error and the heading RMS about its mean (the part the calibration's shape owns).
+With --level-hard-iron each run also records b_err_level = |b - b_true + e_z (A_22 - A_22,true) mean(h_z)|
+(uT, h_z the true body field's z): in level flight b_z and the vertical gain A_22 trade along a ridge
+(b_z + A_22 h_z is what the flight determines, VIF of h_z 200-700), and this figure is the hard-iron
+error with that trade removed, i.e. the error of the calibrated field at the flight's mean attitude.
+--tilt-sd-deg S runs ours and ls with the attitude's roll/pitch error of S deg corrected for (corrected least
+squares, vector_fit.py; the simulated log's is 0.3 deg).
 
     python tools/study_flight.py --seeds 4 [--minutes 30 30] [--rate 10] [--json out.json] [--plot out.png]
         [--methods ours,ls,px4,magfit,stream] [--first-seed 0] [--mounting-deg 0] [--yaw-error-deg X]
+        [--level-hard-iron] [--tilt-sd-deg S]
         [--from-json a.json b.json --plot out.png]    # summarise and plot stored runs
 """
 from __future__ import annotations
@@ -141,10 +148,19 @@ def rotation_z(deg) -> np.ndarray:
     return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
-def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0, yaw_error_deg=None):
+def level_hard_iron_error(truth, A, b, hz_mean) -> float:
+    """|b - b_true + e_z (A_22 - A_22,true) hz_mean| (uT; module doc)."""
+    e = np.asarray(b, dtype=np.float64) - truth["b"]
+    e[2] += (np.asarray(A)[2, 2] - truth["A"][2, 2]) * hz_mean
+    return float(np.linalg.norm(e))
+
+
+def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0, yaw_error_deg=None, level=False,
+        tilt_sd_deg=None):
     """One flight and every method on it; mounting_deg: the magnetometer turned by this angle about the
     body's z axis (a mounting rotation: S becomes Rz S, so A = S^-1 is no longer symmetric);
-    yaw_error_deg: the logged yaw's RMS error instead of the drawn 2-5 deg."""
+    yaw_error_deg: the logged yaw's RMS error instead of the drawn 2-5 deg; level: record b_err_level too;
+    tilt_sd_deg: the roll/pitch error (deg) ours and ls correct for (None: not)."""
     rng = np.random.default_rng(1000 + seed)
     lat, lon, alt = PLACES[seed % len(PLACES)]
     ef = earth_field(lat, lon, alt, 2026.5)
@@ -177,9 +193,12 @@ def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0, yaw_e
                 A, b, K, delay, b_window = stream_fit(rec, ef)
                 extra["b_err_window"] = float(np.linalg.norm(b_window - truth["b"]))
             else:
-                c = fit_flight(rec, earth=ef, robust=(name == "ours"))
+                c = fit_flight(rec, earth=ef, robust=(name == "ours"), tilt_sd_deg=tilt_sd_deg)
                 A, b, K, delay = c.fit.A, c.hard_iron, c.current, c.delay_s
                 extra["misalignment_z_deg"] = float(c.misalignment_deg[2])
+        if level:
+            hz_mean = float(np.mean(np.einsum("kji,j->ki", truth["R_true"], truth["h_ned"])[:, 2]))
+            extra["b_err_level"] = level_hard_iron_error(truth, A, b, hz_mean)
         out[name] = {"b_err": float(np.linalg.norm(b - truth["b"])),
                      "k_rel_err": float(np.linalg.norm(K - Kt) / np.linalg.norm(Kt)),
                      "delay_err_ms": 1e3 * abs((delay or 0.0) - tr["delay"]),
@@ -210,6 +229,10 @@ def summarise(runs):
                          f"{f['delay_err_ms'].max():.1f} ms | heading RMS median {np.median(f['heading_rms_deg']):.2f} "
                          f"max {f['heading_rms_deg'].max():.2f} deg, about its mean median "
                          f"{np.median(f['heading_rms_about_mean_deg']):.2f} max {f['heading_rms_about_mean_deg'].max():.2f}")
+            if all("b_err_level" in r[m] for r in rs):
+                bl = np.array([r[m]["b_err_level"] for r in rs])
+                lines.append(f"disturbed {dist:4.0%} {m:6s} hard iron err with the b_z/A_22 trade removed (--level-hard-iron) "
+                             f"median {np.median(bl):.3f} max {bl.max():.3f} uT")
             if m == "stream" and all("b_err_window" in r[m] for r in rs):
                 bw = np.array([r[m]["b_err_window"] for r in rs])
                 lines.append(f"disturbed {dist:4.0%} stream: the last window's own trial (before pooling) hard iron err "
@@ -280,6 +303,10 @@ def main(argv=None):
                     help="the magnetometer turned by this angle (deg) about the body's z axis (default 0)")
     ap.add_argument("--yaw-error-deg", type=float, default=None,
                     help="the logged yaw's RMS error (deg) instead of one drawn in 2-5 deg per flight")
+    ap.add_argument("--level-hard-iron", action="store_true",
+                    help="also record the hard-iron error with the b_z/A_22 trade of level flight removed (module doc)")
+    ap.add_argument("--tilt-sd-deg", type=float, default=None,
+                    help="ours and ls correct for the attitude's roll/pitch error of this sd (deg; default: not)")
     ap.add_argument("--json", help="write every run's figures here (rewritten after each run)")
     ap.add_argument("--from-json", nargs="+", help="summarise (and plot) these runs' JSON files instead of running")
     ap.add_argument("--plot", help="write the study's PNG here (matplotlib)")
@@ -299,7 +326,8 @@ def main(argv=None):
     else:
         for seed in range(a.first_seed, a.first_seed + a.seeds):
             for dist in a.disturbed:
-                r = run(seed, dist, a.minutes, a.rate, methods, a.mounting_deg, a.yaw_error_deg)
+                r = run(seed, dist, a.minutes, a.rate, methods, a.mounting_deg, a.yaw_error_deg, a.level_hard_iron,
+                          a.tilt_sd_deg)
                 runs.append(r)
                 print(f"seed {seed} disturbed {dist:.0%} {r['minutes']:.1f} min lat {r['lat']:g} log yaw error RMS "
                       f"{r['log_yaw_error_rms_deg']:.1f} mean {r['log_yaw_error_mean_deg']:+.2f} deg: " + "; ".join(

@@ -104,7 +104,8 @@ def throttle_free(names, f) -> bool:
 
 
 def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power=None,
-               robust=True, yaw_only=False, delay=None, max_delay=0.1, max_vif=None) -> FlightCalibration:
+               robust=True, yaw_only=False, delay=None, max_delay=0.1, max_vif=None,
+               tilt_sd_deg=None) -> FlightCalibration:
     """Attitude-aided calibration of ``rec`` (module doc).
 
     earth: an earthfield.EarthField or an NED vector in uT (overrides the position); lat/lon/alt
@@ -112,7 +113,8 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     the recording's meta "date" or "start_time" when given there, else today, noted). power: aux
     columns used as power signals when present (None: the current when present, else the
     throttle; both are usually nearly collinear, current = f(throttle)). delay: a fixed delay (s) instead of the search over
-    [0, max_delay]. max_vif: observability threshold (vector_fit.MAX_VIF)."""
+    [0, max_delay]. max_vif: observability threshold (vector_fit.MAX_VIF). tilt_sd_deg: the attitude's
+    stated roll/pitch error (deg, 1 sd), corrected for in the fit (vector_fit's module doc; None: not)."""
     from .vector_fit import MAX_VIF
 
     notes = []
@@ -152,7 +154,7 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
             notes.append("no position and no field reference: a unit field with the inclination estimated; "
                          "the scale to uT is unknown")
     s = VectorFitSettings(robust=robust, yaw_only=yaw_only, max_delay=max_delay, delay=delay,
-                          max_vif=MAX_VIF if max_vif is None else max_vif)
+                          max_vif=MAX_VIF if max_vif is None else max_vif, tilt_sd_deg=tilt_sd_deg)
     f = fit_vector(rec.t[ok], rec.mag[ok], q[ok], h, c[ok], tuple(names), s)
     S, field, scale, mis = package_form(f.A, float(np.linalg.norm(f.h_ned)))
     if h is None:

@@ -32,6 +32,19 @@ d_i = 1.4826 MAD of its residuals, sigma_i = START_SIGMA_ROBUST; one M-step, the
 theta moves less than em_tol (relative) and (sigma, d) by < 0.1%.
 robust=False gives plain (unweighted) least squares on the same model.
 
+The attitude's roll/pitch error (optional, tilt_sd_deg): the regressor h_k is computed from the logged
+attitude, so it carries the error u_k = delta_k x h_k (delta_k the tilt error about the body's x and y,
+each of sd s rad), and least squares on an error-laden regressor shrinks the slopes (errors in
+variables): A_22, whose only information is the small tilt-driven variation of h_z, is pulled towards 0
+and b_z moves along the ridge b_z + A_22 mean(h_z). Corrected least squares removes the error's
+expected contribution from each channel's normal matrix:
+    X^T C_i X  ->  X^T C_i X - sum_k C_ki Sigma_k  (h block),
+    Sigma_k = s^2 [[h_z^2, 0, -h_x h_z], [0, h_z^2, -h_y h_z], [-h_x h_z, -h_y h_z, h_x^2 + h_y^2]]
+(E[u u^T] for independent errors about x and y). It removes the expected shrinkage only; it needs the
+AHRS's stated roll/pitch accuracy s. Under the kernel weights it assumes the weights independent of u;
+they are not quite (a sample with a large u gets a smaller weight), so it over-corrects a little (measured
+in tests/test_flight_tilt_error.py with a white 2 deg error: b_z off by 2.76 uT without, -0.58 with).
+
 Scalars profiled by a 1-D search (each point an M-step at the current (sigma, d), the objective J
 compared): tau on a grid of DELAY_STEP over [0, max_delay] refined by a parabola through the best
 point and its neighbours; the inclination (when h_E is not given) on a grid of 1 deg refined the
@@ -166,13 +179,24 @@ class _Problem:
     """The design of one fit: X (N, n_x), Y (N, 3), T, and the yaw-error nuisance (yaw_error.py):
     basis (None: none), R (N, 3, 3) and h_E, from which its regressor is formed with A."""
 
-    def __init__(self, X, Y, T, R=None, h=None, basis=None):
+    def __init__(self, X, Y, T, R=None, h=None, basis=None, tilt_var=None):
         self.X, self.Y, self.T, self.R, self.h, self.basis = X, Y, T, R, h, basis
+        self.tilt_var = tilt_var            # rad^2: the roll/pitch error's variance, None: not corrected
 
     def yaw_g(self, theta):
         from .yaw_error import yaw_regressor
 
         return yaw_regressor(self.R, self.h, theta.reshape(3, -1)[:, :3])
+
+
+def tilt_error_covariance(h, tilt_var) -> np.ndarray:
+    """Sigma_k (N, 3, 3) of the module doc: E[u u^T], u = delta x h, delta = (dx, dy, 0), var(dx) = var(dy) = tilt_var."""
+    S = np.zeros((h.shape[0], 3, 3))
+    S[:, 0, 0] = S[:, 1, 1] = h[:, 2] ** 2
+    S[:, 0, 2] = S[:, 2, 0] = -h[:, 0] * h[:, 2]
+    S[:, 1, 2] = S[:, 2, 1] = -h[:, 1] * h[:, 2]
+    S[:, 2, 2] = h[:, 0] ** 2 + h[:, 1] ** 2
+    return tilt_var * S
 
 
 def _residuals(P, z):
@@ -194,6 +218,10 @@ def _normal(P, C, g):
         Xw = X * C[:, i:i + 1]
         Nb[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx] = Xw.T @ X
         rb[i * nx:(i + 1) * nx] = Xw.T @ Y[:, i]
+    if P.tilt_var:               # corrected least squares (module doc)
+        Sig = tilt_error_covariance(X[:, :3], P.tilt_var)
+        for i in range(3):
+            Nb[i * nx:i * nx + 3, i * nx:i * nx + 3] -= np.einsum("k,kab->ab", C[:, i], Sig)
     Nq = T.T @ Nb @ T
     rq = T.T @ rb
     if P.basis is None:
@@ -272,6 +300,7 @@ class VectorFitSettings:
     delay: float | None = None      # s; a fixed delay instead of the search
     yaw_knot_s: float | None = 10.0  # s; knot spacing of the yaw-error nuisance (None: no yaw error modelled)
     yaw_prior_deg: float = 5.0       # prior sd of the yaw error, deg
+    tilt_sd_deg: float | None = None  # the attitude's stated roll/pitch error sd, deg (None: not corrected)
 
 
 @dataclass
@@ -419,6 +448,9 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
         raise MKCInputError(f"{t.shape[0]} samples are too few for the vector model")
     names = ["h_x", "h_y", "h_z", "1"] + [f"power:{n}" for n in (power_names or [f"c{j}" for j in range(n_c)])]
     basis = YawBasis(t, s.yaw_knot_s, s.yaw_prior_deg) if s.yaw_knot_s else None
+    if s.tilt_sd_deg is not None and not (math.isfinite(s.tilt_sd_deg) and s.tilt_sd_deg >= 0):
+        raise MKCInputError(f"tilt_sd_deg must be >= 0 (deg) or None; got {s.tilt_sd_deg!r}")
+    tilt_var = math.radians(s.tilt_sd_deg) ** 2 if s.tilt_sd_deg else None
 
     def design(h, tau):
         return np.concatenate([body_field(R, h), np.ones((t.shape[0], 1)), delayed(t, c0, tau)], axis=1)
@@ -443,7 +475,7 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
         held = [h.replace(f"K_{j}=0", f"K[{n}]=0") for h in held]
 
     def problem(h, tau):
-        return _Problem(design(h, tau), Y, T, R, h, basis)
+        return _Problem(design(h, tau), Y, T, R, h, basis, tilt_var)
 
     incl_profile = []
     if h_ned is None:
