@@ -170,26 +170,42 @@ def _write_params(args, outputs, cal, unit):
         outputs.attempt(path, write_params, target, values, path)
 
 
+def _replay(cal, N, feed, quiet) -> float:
+    """feed(start, stop) for chunks of the N samples, with a progress line; returns the seconds taken."""
+    chunk = max(1000, N // 50)
+    t0 = time.perf_counter()
+    progress = Progress(enabled=not quiet)
+    for start in range(0, N, chunk):
+        feed(start, min(N, start + chunk))
+        done = min(N, start + chunk)
+        state = "accepted" if cal.accepted is not None else cal.status_reason()[:50]
+        progress(f"  streaming {done}/{N} samples ({done / N:.0%}), {state}")
+    progress.end()
+    return time.perf_counter() - t0
+
+
+def _evolution(history, coverage: bool) -> list:
+    """The JSON's "evolution": one entry per checkpoint (with the window's coverage when it has one)."""
+    out = []
+    for ev in history:
+        e = {"samples": ev.samples_seen, "accepted": ev.accepted,
+             "hard_iron": None if ev.hard_iron is None else [float(v) for v in ev.hard_iron],
+             "field": None if ev.field is None else float(ev.field)}
+        if coverage:
+            e["coverage"] = ev.coverage
+        e["reason"] = ev.reason or None
+        out.append(e)
+    return out
+
+
 def _stream_calibrate(args, rec, unit, counts, out):
     """Replay a recording through the streaming calibrator; returns (json_obj, the accepted Calibration or None)."""
     from ..calib.result import no_calibration_json
 
     cal = compiled_calibrator(args.window, args.estep_every, unit)
     N = len(rec.mag)
-    chunk = max(1000, N // 50)
-    t0 = time.perf_counter()
-    progress = Progress(enabled=not args.quiet)
-    for start in range(0, N, chunk):
-        cal.learn_many(rec.mag[start:start + chunk])
-        done = min(N, start + chunk)
-        state = "accepted" if cal.accepted is not None else cal.status_reason()[:50]
-        progress(f"  streaming {done}/{N} samples ({done / N:.0%}), {state}")
-    progress.end()
-    elapsed = time.perf_counter() - t0
-    evolution = [{"samples": ev.samples_seen, "accepted": ev.accepted,
-                  "hard_iron": None if ev.hard_iron is None else [float(v) for v in ev.hard_iron],
-                  "field": None if ev.field is None else float(ev.field),
-                  "coverage": ev.coverage, "reason": ev.reason or None} for ev in cal.history]
+    elapsed = _replay(cal, N, lambda a, b: cal.learn_many(rec.mag[a:b]), args.quiet)
+    evolution = _evolution(cal.history, coverage=True)
     counts = dict(counts)
     counts["bad_frames"] += cal.counts()["bad_frames"]
     acc = cal.accepted
@@ -243,21 +259,9 @@ def _flight_stream_calibrate(args, rec, unit, counts, out):
         p(status_line(rejection))
         return no_calibration_json(rejection, counts, method=method), None
     N = len(mag)
-    chunk = max(1000, N // 50)
-    t0 = time.perf_counter()
-    progress = Progress(enabled=not args.quiet)
-    for start in range(0, N, chunk):
-        cal.learn_many(mag[start:start + chunk], q[start:start + chunk],
-                       None if power is None else power[start:start + chunk])
-        done = min(N, start + chunk)
-        state = "accepted" if cal.accepted is not None else cal.status_reason()[:50]
-        progress(f"  streaming {done}/{N} samples ({done / N:.0%}), {state}")
-    progress.end()
-    elapsed = time.perf_counter() - t0
-    evolution = [{"samples": ev.samples_seen, "accepted": ev.accepted,
-                  "hard_iron": None if ev.hard_iron is None else [float(v) for v in ev.hard_iron],
-                  "field": None if ev.field is None else float(ev.field), "reason": ev.reason or None}
-                 for ev in cal.history]
+    elapsed = _replay(cal, N, lambda a, b: cal.learn_many(mag[a:b], q[a:b], None if power is None else power[a:b]),
+                      args.quiet)
+    evolution = _evolution(cal.history, coverage=False)
     counts = dict(counts)
     counts["bad_frames"] += cal.counts()["bad_frames"]
     acc = cal.accepted

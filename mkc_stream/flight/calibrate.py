@@ -103,6 +103,36 @@ def throttle_free(names, f) -> bool:
     return not any(n != "current" and f"K[{n}]=0" not in f.held for n in names)
 
 
+def require_attitude(rec, what: str) -> None:
+    """MKCInputError unless the recording has the attitude quaternion columns."""
+    missing = [c for c in QUAT if c not in rec.aux]
+    if missing:
+        raise MKCInputError(f"the recording has no attitude (missing {', '.join(missing)}); the attitude-aided "
+                            f"{what} needs qw, qx, qy, qz (body -> NED)")
+
+
+def earth_reference(rec, earth, lat, lon, alt, date, notes: list):
+    """(EarthField or None, h_NED in uT or None): the field reference given (an EarthField or an NED
+    vector), else WMM2025 at --lat/--lon or the recording's median GPS position on `date` (the
+    recording's own date when not given; today's, with a note, when it has none); (None, None) when
+    there is neither a reference nor a position."""
+    if earth is not None:
+        if hasattr(earth, "ned_uT"):
+            return earth, np.asarray(earth.ned_uT, dtype=np.float64)
+        return None, np.asarray(earth, dtype=np.float64).reshape(3)
+    pos = (float(lat), float(lon), float(alt)) if lat is not None and lon is not None else _median_position(rec)
+    if pos is None:
+        return None, None
+    from .earthfield import earth_field
+
+    if date is None:
+        date = rec.meta.get("date") or rec.meta.get("start_time")
+        if date is None:
+            notes.append("no date in the recording: the Earth field is for today's date")
+    ef = earth_field(*pos, date=date)
+    return ef, ef.ned_uT
+
+
 def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power=None,
                robust=True, yaw_only=False, delay=None, max_delay=0.1, max_vif=None,
                tilt_sd_deg=None) -> FlightCalibration:
@@ -118,10 +148,7 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     from .vector_fit import MAX_VIF
 
     notes = []
-    missing = [c for c in QUAT if c not in rec.aux]
-    if missing:
-        raise MKCInputError(f"the recording has no attitude (missing {', '.join(missing)}); the attitude-aided "
-                            "fit needs qw, qx, qy, qz (body -> NED)")
+    require_attitude(rec, "fit")
     q = np.stack([rec.aux[c] for c in QUAT], axis=1)
     if power is None:          # the current when the log has it, else the throttle (module doc)
         power = ("current",) if "current" in rec.aux else ("throttle",)
@@ -132,27 +159,10 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     skipped = int((~ok).sum())
     if skipped:
         notes.append(f"{skipped} rows without a finite attitude, field or power signal were left out")
-    ef = None
-    h = None
-    if earth is not None:
-        if hasattr(earth, "ned_uT"):
-            ef, h = earth, np.asarray(earth.ned_uT, dtype=np.float64)
-        else:
-            h = np.asarray(earth, dtype=np.float64).reshape(3)
-    else:
-        pos = (float(lat), float(lon), float(alt)) if lat is not None and lon is not None else _median_position(rec)
-        if pos is not None:
-            from .earthfield import earth_field
-
-            if date is None:
-                date = rec.meta.get("date") or rec.meta.get("start_time")
-                if date is None:
-                    notes.append("no date in the recording: the Earth field is for today's date")
-            ef = earth_field(*pos, date=date)
-            h = ef.ned_uT
-        else:
-            notes.append("no position and no field reference: a unit field with the inclination estimated; "
-                         "the scale to uT is unknown")
+    ef, h = earth_reference(rec, earth, lat, lon, alt, date, notes)
+    if h is None:
+        notes.append("no position and no field reference: a unit field with the inclination estimated; "
+                     "the scale to uT is unknown")
     s = VectorFitSettings(robust=robust, yaw_only=yaw_only, max_delay=max_delay, delay=delay,
                           max_vif=MAX_VIF if max_vif is None else max_vif, tilt_sd_deg=tilt_sd_deg)
     f = fit_vector(rec.t[ok], rec.mag[ok], q[ok], h, c[ok], tuple(names), s)

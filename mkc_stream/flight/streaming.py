@@ -552,33 +552,15 @@ def recording_inputs(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None,
     the current when the recording has it, else the throttle; it is used without delay (the stream
     does not search one). yaw_only holds the vertical soft iron ("all"), else the tilt terms ("tilt").
     MKCInputError, with the reason, when the attitude or the field reference is missing."""
-    from .calibrate import QUAT, _median_position
+    from .calibrate import QUAT, earth_reference, require_attitude
 
-    missing = [c for c in QUAT if c not in rec.aux]
-    if missing:
-        raise MKCInputError(f"the recording has no attitude (missing {', '.join(missing)}); the attitude-aided "
-                            "stream needs qw, qx, qy, qz (body -> NED)")
+    require_attitude(rec, "stream")
     notes = []
-    ef = None
-    if earth is not None:
-        if hasattr(earth, "ned_uT"):
-            ef, h = earth, np.asarray(earth.ned_uT, dtype=np.float64)
-        else:
-            h = np.asarray(earth, dtype=np.float64).reshape(3)
-    else:
-        pos = (float(lat), float(lon), float(alt)) if lat is not None and lon is not None else _median_position(rec)
-        if pos is None:
-            raise MKCInputError("the attitude-aided stream needs the Earth field: a position in the recording "
-                                "(lat, lon) or --lat/--lon (the batch fit, without --stream, can estimate the "
-                                "inclination instead)")
-        from .earthfield import earth_field
-
-        if date is None:
-            date = rec.meta.get("date") or rec.meta.get("start_time")
-            if date is None:
-                notes.append("no date in the recording: the Earth field is for today's date")
-        ef = earth_field(*pos, date=date)
-        h = ef.ned_uT
+    ef, h = earth_reference(rec, earth, lat, lon, alt, date, notes)
+    if h is None:
+        raise MKCInputError("the attitude-aided stream needs the Earth field: a position in the recording "
+                            "(lat, lon) or --lat/--lon (the batch fit, without --stream, can estimate the "
+                            "inclination instead)")
     names = ()
     for n in ("current", "throttle"):
         if n in rec.aux:
