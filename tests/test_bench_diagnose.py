@@ -35,14 +35,35 @@ def test_measure_reports_seconds_memory_and_verdict_of_a_tiny_case():
 
 
 def test_child_peak_memory_is_that_childs_own():
-    """ru_maxrss from os.wait4 belongs to the one child: a child that fills 200 MB shows at least that."""
-    code, out, wall, rss = bench_diagnose._run_child(
-        [sys.executable, "-c", "s = b'x' * (200 * 2**20); print(len(s))"], timeout=60.0)
-    assert code == 0 and out.strip() == str(200 * 2 ** 20)
+    """A child that fills 200 MB shows at least that, an empty one little. Run from a small process:
+    on Linux a child's ru_maxrss starts at its parent's resident memory (a pytest worker's 600 MB),
+    which is why the tool's own process stays small."""
+    import json
+    import subprocess
+
+    probe = ("import json, sys; sys.path.insert(0, sys.argv[1]); import bench_diagnose as B; "
+             "big = B._run_child([sys.executable, '-c', 's = b\"x\" * (200 * 2**20); print(len(s))'], timeout=60.0); "
+             "small = B._run_child([sys.executable, '-c', 'pass'], timeout=60.0); "
+             "print(json.dumps([big[0], big[1].strip(), big[2], big[3], small[0], small[3]]))")
+    out = subprocess.run([sys.executable, "-c", probe, str(TOOLS)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    code, text, wall, rss, code_small, small = json.loads(out.stdout.strip().splitlines()[-1])
+    assert code == 0 and text == str(200 * 2 ** 20)
     assert wall > 0.0
     assert rss >= 200.0
-    code, _, _, small = bench_diagnose._run_child([sys.executable, "-c", "pass"], timeout=60.0)
-    assert code == 0 and small < 100.0
+    assert code_small == 0 and small < 100.0
+
+
+def test_own_peak_is_this_process_high_water_mark():
+    """_peak_rss_mb reads the process's own high-water mark, which 200 MB filled here raises by that."""
+    import subprocess
+
+    probe = ("import sys; sys.path.insert(0, sys.argv[1]); import bench_diagnose as B; a = B._peak_rss_mb(); "
+             "s = b'x' * (200 * 2**20); b = B._peak_rss_mb(); print(a, b)")
+    out = subprocess.run([sys.executable, "-c", probe, str(TOOLS)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    before, after = map(float, out.stdout.split())
+    assert before < 100.0 and after - before >= 190.0
 
 
 def test_auto_rate_makes_a_million_samples_1000_s_at_1_khz():
