@@ -28,6 +28,8 @@ Families (null: nothing the diagnosis lists as an effect):
   axis), ``indep-quiet`` (a quarter of the drawn noise), ``indep-iso`` (the same noise on every
   axis): one setting changed, to tell which alarms follow the noise rather than the simulator
   (not part of the default run).
+* ``hand-10hz``, ``hand-1khz``: hand at another output rate, 10^4 samples (not part of the
+  default run).
 * ``real``: the undisturbed real recordings bundled with the package and in tests/data. They
   are not nulls (real noise is neither white nor Gaussian); reported for what they give. The
   cave-survey recordings (24 samples each) are listed as not diagnosed (too short).
@@ -63,6 +65,8 @@ FAMILIES = {
     "indep-quiet": ("indep", 10_000),
     "indep-iso": ("indep", 10_000),
     "hand-aniso": ("hand", 10_000),
+    "hand-10hz": ("hand", 10_000),
+    "hand-1khz": ("hand", 10_000),
 }
 #: families that change one setting to tell which alarms follow it: our simulator with the white
 #: noise at 1.2% of the field (0.6 uT at 50 uT) or unequal per axis (uT); the independent one with
@@ -70,6 +74,8 @@ FAMILIES = {
 SENSOR_NOISE_UT = {"hand-noisy": 0.6, "hand-aniso": (0.1, 0.05, 0.1)}
 INDEP_OPTIONS = {"indep-quiet": {"noise_scale": 0.25}, "indep-iso": {"isotropic_noise": True}}
 SIM_RATE_HZ = 50.0
+#: families at another output rate (Hz): 10^4 samples are 1000 s at 10 Hz, 10 s at 1 kHz
+RATE_HZ = {"hand-10hz": 10.0, "hand-1khz": 1000.0}
 NULL_VERDICT = "no_gap"
 
 
@@ -115,7 +121,8 @@ def make_recording(family: str, index: int, seed: int, samples: int | None = Non
     from mkc_stream.sim import SensorModel, generate, simulate
 
     # the `mkc-stream simulate --trajectory KIND --power` defaults (sensor seed = seed + 1 as there)
-    traj = generate(kind, duration=n / SIM_RATE_HZ, rate=SIM_RATE_HZ, seed=s, temp="cycle", power=True)
+    rate = RATE_HZ.get(family, SIM_RATE_HZ)
+    traj = generate(kind, duration=n / rate, rate=rate, seed=s, temp="cycle", power=True)
     sensor = SensorModel(noise=SENSOR_NOISE_UT.get(family, SensorModel.noise))
     return f"{kind} seed {s}", simulate(traj, sensor, seed=s + 1).recording, {}
 

@@ -4,9 +4,9 @@
   white noise per axis, bursts like the recording's) along the recording's directions, plus any
   stochastic effect of the model; the channel is computed at the simulated truth.
 * dip channel: the accelerometer is not simulated (its linear accelerations cannot be
-  reconstructed), so the replica's dip residual is the model's own dip residual shifted
-  circularly in time (and sometimes reversed): the same distribution, spectrum and dynamics, no
-  tie to orientation, rotation rate or aux signals. A misalignment or latency then shows as
+  reconstructed), so the replica's dip residual is the model's own dip residual shifted in
+  time, running on backwards where the recording ends (:func:`shifted`): the same distribution,
+  spectrum and dynamics, no tie to orientation, rotation rate or aux signals. A misalignment or latency then shows as
   structure the shifted copies lack.
 * clock: a regular clock at the recording's median period (rounded to its timestamp quantum),
   plus the model's clock effects.
@@ -45,24 +45,29 @@ class _NormOnly:
 
 
 def shifted(x, valid, rng):
-    """A circular shift (and, half the time, a time reversal) of x over its valid samples.
+    """A window of x's valid samples taken out of their mirrored periodic extension
+    [x, x reversed]: a shift in time that runs on, backwards, where the recording ends.
+
+    Why mirrored, not circular: a circular shift joins the recording's end to its start, and
+    that jump, the same in every replica, is the only thing that tells a replica's
+    shift-invariant statistics (the Allan variance at one sample, the block-to-block changes)
+    from the real recording's; against that degenerate null a jump of a few sigma read as a
+    gap of z 5-8 on nulls. The mirrored extension has no jump, and a window of it holds a
+    different stretch of the recording in every replica, so those statistics get a spread.
 
     Why not a phase-randomised surrogate: the dip residual is heavy-tailed (linear accelerations)
     and non-Gaussian surrogates either miss its distribution or whiten its spectrum, and the
-    panel would then see a gap in every real recording. A shift keeps the distribution, the
-    spectrum and the dynamics exactly and only breaks the tie to orientation, rates and aux
-    signals, which is what the dip statistics test.
+    panel would then see a gap in every real recording. A shifted window keeps the distribution,
+    the spectrum and the dynamics and only breaks the tie to orientation, rates and aux signals,
+    which is what the dip statistics test.
     """
     xv = x[valid]
     n = xv.size
     out = x.copy()
     if n < 8:
         return out
-    k = int(rng.integers(max(1, n // 20), n - max(1, n // 20)))
-    y = np.roll(xv, k)
-    if rng.uniform() < 0.5:
-        y = y[::-1]
-    out[valid] = y
+    k = int(rng.integers(0, 2 * n))
+    out[valid] = np.take(np.concatenate([xv, xv[::-1]]), np.arange(k, k + n), mode="wrap")
     return out
 
 
