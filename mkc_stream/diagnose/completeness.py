@@ -33,7 +33,7 @@ from scipy import stats
 
 from .engine import CATCH_ALL
 from .matched import ALPHA
-from .model import INLIER_K, RIDGE, channels
+from .model import INLIER_K, RIDGE, channels, noise_free_point
 
 #: share of an aux term's weighted norm it must keep outside the base to be tested (a term the
 #: selected effects span, like the current's own effect against the current, has nothing left)
@@ -53,14 +53,16 @@ class _Design:
         W = base.valid & (np.abs(E) < INLIER_K)
         self.w = W.reshape(-1).astype(np.float64)
         self.e = np.where(W, E, 0.0).reshape(-1)
-        self.J = channels(fit.m_corr, frame, fit.state).J
+        # columns read where the sample's own noise is not (as the fit's: .model.noise_free_point)
+        m_read = noise_free_point(fit.m_corr, fit.state)
+        self.J = channels(m_read, frame, fit.state).J
         self.s, self.N, self.C = s, N, C
         cols = [(fit.X / s[None, :, None]).reshape(N * C, -1)]
         # a linear trend of the hard iron belongs to no aux signal: without it in the base, a
         # ramp-shaped signal (a battery's voltage) would stand for any slow residual
         tt = (frame.t - frame.t.mean()) / max(float(np.ptp(frame.t)), 1e-300)
         cols.append(self.raw_columns(tt[:, None, None] * np.eye(3)[None]))
-        cols += [self.raw_columns(t.G(frame, fit.m_corr, fit.state)) for t in terms]
+        cols += [self.raw_columns(t.G(frame, m_read, fit.state)) for t in terms]
         self.base = np.concatenate(cols, axis=1)
 
     def raw_columns(self, G):

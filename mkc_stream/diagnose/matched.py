@@ -9,7 +9,11 @@ much does the weighted residual sum of squares of the baseline drop when the ter
 * Statistic: the score statistic Q = g' A^-1 g of the term's columns made orthogonal to the
   calibration's (what the ellipsoid and dip absorb is no evidence), on all samples, maximised
   over the form's settings (thermal lags, step times ...). For one setting and white noise
-  Q ~ chi2_k.
+  Q ~ chi2_k. All the columns (the calibration's and the term's) are read at
+  :func:`.model.noise_free_point` (the neighbours' field put on the fitted sphere), not at the
+  noisy sample: a column read at the sample carries the noise the sample's residual is made
+  of, and the cubic columns, about 95% of which the ellipsoid's absorb, keep that shared noise
+  through the orthogonalisation; on a noisy or long null that alone made a cubic term fire.
 * Null: the same on every replica of the baseline (simulated without the effect, projected
   through the same fit, the same search over settings), so the search, the bursts and the
   masks are paid for in the null. The cube root of a (scaled) chi-square is nearly normal
@@ -43,7 +47,7 @@ import numpy as np
 from scipy import stats
 
 from .forms import FORMS, MeanForm
-from .model import INLIER_K, RIDGE, channels, project
+from .model import INLIER_K, RIDGE, channels, noise_free_point, project
 
 #: total false-alarm budget of the matched tests (Bonferroni over the tests)
 ALPHA = 0.01
@@ -86,9 +90,15 @@ class MatchedTests:
         self.M, N, C = E.shape
         self.EW = (E * W).reshape(self.M, N * C)          # weighted residuals, real first
         self.w0 = W[0].reshape(N * C).astype(np.float64)  # the real recording's weights (shared Gram)
-        self.X0 = (fit.X / sigma[None, :, None]).reshape(N * C, -1)
         self.fit, self.NC = fit, N * C
-        self.J = channels(fit.m_corr, frame, fit.state).J
+        # every column of the test (the base's, which the term is made orthogonal to, and the
+        # term's) is read where the sample's own noise is not (see noise_free_point; the fit's
+        # columns fit.X are read there too): the real residual is that noise, and a column
+        # sharing it correlates with it on the real recording alone (each replica's noise is
+        # its own), a bias no null can pay for
+        self.m_read = noise_free_point(fit.m_corr, fit.state)
+        self.X0 = (fit.X / sigma[None, :, None]).reshape(N * C, -1)
+        self.J = channels(self.m_read, frame, fit.state).J
         self._cols = {}
         self._cache = {}
         self.R = self.M - 1
@@ -101,7 +111,7 @@ class MatchedTests:
             s = self.eng.base.sigma
             out = []
             for des in form.designs(env):
-                G = form.G(env, des)(self.eng.frame, self.fit.m_corr, self.fit.state)
+                G = form.G(env, des)(self.eng.frame, self.m_read, self.fit.state)
                 X = -np.einsum("nck,nkp->ncp", self.J, G) / s[None, :, None]
                 out.append((des, X.reshape(self.NC, -1)))
             self._cols[name] = out

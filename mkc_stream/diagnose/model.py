@@ -12,8 +12,12 @@ symmetric perturbation of S: 6), dip0, and each effect's parameters, whose contr
 raw signal is G(t) theta (G from :mod:`forms`). All of them enter the channels through the
 same Jacobian, so one weighted least-squares step fits them jointly; a few Gauss-Newton
 iterations (re-linearising at the new b, S, theta) remove the linearisation error of large
-effects. Weights are hard: a sample counts while |e| < 4 sigma of its channel (the same rule
-decides "down-weighted" in the statistics panel and in the replicas).
+effects. The columns are read at :func:`noise_free_point`, not at the noisy samples: the fit
+then solves X' W e = 0 with columns that share no noise with the residual (an instrumental-
+variable fit); read at the samples, they fitted a cubic term to the noise alone (on 12
+hand-waved nulls with 0.6 uT of white noise, 10^4 samples: +0.74 uT at 50 uT on x, 0.08 uT
+standard error). Weights are hard: a sample counts while |e| < 4 sigma of its channel (the
+same rule decides "down-weighted" in the statistics panel and in the replicas).
 """
 from __future__ import annotations
 
@@ -161,6 +165,39 @@ def _effect_offsets(frame, st, terms, theta):
     return d
 
 
+def noise_free_point(m, st: State) -> np.ndarray:
+    """(N, 3) where the fit and the tests read their columns, free of the sample's own noise:
+    the direction of its two neighbours' average, m_hat = (m[n-1] + m[n+1]) / 2 (one neighbour
+    at the ends), put on the fitted sphere, b + S^-1 F u with u = S (m_hat - b) / |S (m_hat - b)|.
+
+    Why: the norm residual of a sample is mostly its own noise along the field, e ~ v . n. A
+    column read at the noisy sample carries that noise too (x^3 at x + n has 3 x^2 n; the
+    ellipsoid's columns are linear in x), so residual and column share it and their product has
+    a mean no replica (whose noise is its own) has. The cubic columns are ~95% collinear with the
+    ellipsoid's, so that shared noise survives their orthogonalisation: on 10^4 samples at 0.6 uT
+    of noise, or 2 x 10^4 at 0.1 uT, a cubic term "fired" at 3-5 sigma on nulls. The neighbours
+    share no white noise with the sample, and the sphere drops what is left along the field
+    (coloured noise; the neighbours' mean curvature, ~ -dt^2 w^2 m / 2, is radial).
+    """
+    if m.ndim != 2 or m.shape[1] != 3:
+        raise ValueError(f"noise_free_point needs (N, 3) magnetometer samples, got shape {m.shape}")
+    n = m.shape[0]
+    if n < 3:
+        return m.copy()
+    mh = np.empty_like(m)
+    mh[1:-1] = 0.5 * (m[:-2] + m[2:])
+    mh[0], mh[-1] = m[1], m[-2]
+    mc = (mh - st.b) @ st.S.T
+    u = mc / np.maximum(np.linalg.norm(mc, axis=1, keepdims=True), 1e-300)
+    return st.b + (st.F * u) @ np.linalg.inv(st.S).T
+
+
+def columns_at(frame, m, st: State, terms=()) -> np.ndarray:
+    """(N, C, p) a model's columns (calibration, dip0, terms), all read at the points m, the
+    channels' Jacobian included (e.g. at :func:`noise_free_point` for a test)."""
+    return _columns(frame, m, st, channels(m, frame, st), list(terms))
+
+
 def _columns(frame, m_corr, st, ch, terms):
     cols = [np.einsum("nck,nkp->ncp", ch.J, calib_G(m_corr, st))]
     C = ch.r.shape[1]
@@ -205,7 +242,9 @@ def fit_model(frame, start: State, terms, valid, sigma, fit_mask=None, iters=4, 
         e = ch.r
         if it > 0 or inlier is None:
             inl = valid & (np.abs(e) < INLIER_K * sigma[None, :])
-        X = _columns(frame, m_corr, st, ch, terms)
+        # columns at the noise-free point (instruments): at convergence X' W e = 0 holds with
+        # columns that share no noise with e, so no term is fitted to the noise itself
+        X = columns_at(frame, noise_free_point(m_corr, st), st, terms)
         if it == iters:
             break
         w = (inl & fit_mask[:, None]).astype(np.float64)
@@ -232,10 +271,9 @@ def fit_model(frame, start: State, terms, valid, sigma, fit_mask=None, iters=4, 
 
 
 def quick_rss(frame, base: ModelFit, term: Term) -> float:
-    """Training RSS after one linear step from a fitted model with one more term (grid searches)."""
-    G = term.G(frame, base.m_corr, base.state)
-    J = channels(base.m_corr, frame, base.state).J
-    Xe = -np.einsum("nck,nkp->ncp", J, G)
+    """Training RSS after one linear step from a fitted model with one more term (grid searches);
+    the term's column is read at the noise-free point, like the fit's."""
+    Xe = columns_at(frame, noise_free_point(base.m_corr, base.state), base.state, [term])[:, :, -term.k:]
     X = np.concatenate([base.X, Xe], axis=2)
     w = (base.inlier & base.fit_mask[:, None]).astype(np.float64)
     A, g = _normal(X, base.e, w, base.sigma)
