@@ -7,12 +7,18 @@ m = 1, W = 256).
     python tools/bench_firmware_target.py --precisions double float floatonly --json out/target.json
     python tools/bench_firmware_target.py --board an505         # the Cortex-M33 board
     python tools/bench_firmware_target.py --precisions floatonly --estep-every 128   # another E-step period
+    python tools/bench_firmware_target.py --flash-only --precisions double float floatonly   # no emulator
 
 It runs `make -C firmware_ref measure` (BUILD=--build), then per precision:
 - flash and RAM of BOARD_footprint_PRECISION.elf (target/footprint_main.c: the smallest firmware using
   the calibrator) from `arm-none-eabi-size` (text holds code and constants: the linker script puts
   .rodata in .text), split by the link map into the library (libmkc_*.a) and the runtime (newlib's
   libm and libc, libgcc's software double); the state is `cal` in `arm-none-eabi-nm -S`;
+- the flash the library adds to a firmware: text + data (the initial values of .data are stored in
+  flash) of that firmware minus the same of BOARD_footprint_base_PRECISION.elf
+  (target/footprint_base_main.c: the same reset, vectors and sensor loop without the calibrator),
+  linked with the same flags; it is the library's code and constants plus the libm, libc and libgcc
+  functions it pulls in (listed by archive member);
 - a whole replay of a golden vector through BOARD_measure_PRECISION.elf (target/measure_main.c) under
   `-icount shift=S,sleep=off`: every guest instruction takes 2^S virtual ns, the board's 25 MHz FPGAIO
   counter reads floor(virtual ns / 40), so instructions = ticks * 40 / 2^S, each per-sample figure
@@ -52,6 +58,7 @@ CORES = {"an386": "Cortex-M4F", "an505": "Cortex-M33"}
 COUNTER_NS_PER_TICK = {"an386": 40.0, "an505": 50.0}
 PRECISION_NAMES = {"double": "double", "float": "float (double accumulators and E-step)", "floatonly": "all-float"}
 #: the acceptance targets (M4F, W = 256, all-float), bytes and instructions
+#: (flash: the bytes the library adds to a firmware, flash_added_bytes)
 TARGETS = {"state_bytes": 8 * 1024, "flash_bytes": 24 * 1024, "stack_bytes": 2 * 1024, "insns_per_sample": 3000}
 COST_ESTEP, COST_CHECKPOINT = 1, 2
 IN_MAGIC, IO_VERSION = 0x49434B4D, 1
@@ -230,11 +237,10 @@ def symbol_size(elf: pathlib.Path, name: str) -> int:
 _INPUT_SECTION = re.compile(r"^\s+(?:(\S+)\s+)?0x([0-9a-f]+)\s+0x([0-9a-f]+)\s+(\S+\.(?:o|a\(\S+\)|o\)))\s*$")
 
 
-def text_by_origin(map_path: pathlib.Path) -> dict:
-    """Bytes of the output section .text (code and constants) by where they come from, from the link
-    map: "library" (libmkc_*.a), "runtime" (libm, libc, libgcc and the other toolchain archives),
-    "program" (the harness's own objects: reset, vectors, main)."""
-    out = {"library": 0, "runtime": 0, "program": 0}
+def text_by_member(map_path: pathlib.Path) -> dict:
+    """Bytes of the output section .text (code and constants) by the object or archive member they come
+    from, from the link map, e.g. {"libm.a(lib_a-sf_expm1.o)": 624, "footprint_main.o": 156}."""
+    out: dict[str, int] = {}
     in_text = False
     for line in map_path.read_text().splitlines():
         if re.match(r"^\.\S+", line):               # an output section starts
@@ -245,10 +251,48 @@ def text_by_origin(map_path: pathlib.Path) -> dict:
         m = _INPUT_SECTION.match(line)
         if not m or int(m.group(3), 16) == 0:
             continue
-        origin = m.group(4)
-        kind = "library" if "libmkc_" in origin else "runtime" if ".a(" in origin else "program"
-        out[kind] += int(m.group(3), 16)
+        member = m.group(4).rsplit("/", 1)[-1]
+        out[member] = out.get(member, 0) + int(m.group(3), 16)
     return out
+
+
+def origin_of(member: str) -> str:
+    """"library" (libmkc_*.a), "runtime" (libm, libc, libgcc and the other toolchain archives) or
+    "program" (the firmware's own objects: reset, vectors, main)."""
+    return "library" if member.startswith("libmkc_") else "runtime" if ".a(" in member else "program"
+
+
+def text_by_origin(map_path: pathlib.Path) -> dict:
+    """Bytes of the output section .text (code and constants) by where they come from (origin_of)."""
+    out = {"library": 0, "runtime": 0, "program": 0}
+    for member, n in text_by_member(map_path).items():
+        out[origin_of(member)] += n
+    return out
+
+
+def flash_added(build_dir: pathlib.Path, board: str, precision: str) -> dict:
+    """The flash the library adds to a firmware: text + data of BOARD_footprint_PRECISION.elf (the
+    smallest firmware using the calibrator) minus the same of BOARD_footprint_base_PRECISION.elf (that
+    firmware without the calibrator), both linked with the same flags. "added_by_origin" splits it
+    into the library's own code and constants and the runtime functions it pulls in (by_member: each
+    archive member it adds, largest first); "program" is main's own change. The members' sum and the
+    data differ from the whole by the alignment fill between sections (tens of bytes)."""
+    app_elf = build_dir / "qemu" / f"{board}_footprint_{precision}.elf"
+    base_elf = build_dir / "qemu" / f"{board}_footprint_base_{precision}.elf"
+    for elf in (app_elf, base_elf):
+        if not elf.exists():
+            raise MeasureError(f"{elf} not built (make -C firmware_ref measure)")
+    app, base = size_of(app_elf), size_of(base_elf)
+    app_members, base_members = text_by_member(app_elf.with_suffix(".map")), text_by_member(base_elf.with_suffix(".map"))
+    added = {k: app_members.get(k, 0) - base_members.get(k, 0) for k in app_members.keys() | base_members.keys()
+             if app_members.get(k, 0) != base_members.get(k, 0)}
+    by_origin = {"library": 0, "runtime": 0, "program": 0}
+    for member, n in added.items():
+        by_origin[origin_of(member)] += n
+    return {"flash_added_bytes": (app["text"] + app["data"]) - (base["text"] + base["data"]),
+            "flash_app_bytes": app["text"] + app["data"], "flash_base_bytes": base["text"] + base["data"],
+            "added_data_bytes": app["data"] - base["data"], "added_by_origin": by_origin,
+            "added_by_member": dict(sorted(added.items(), key=lambda kv: -kv[1]))}
 
 
 def footprint(build_dir: pathlib.Path, board: str, precision: str) -> dict:
@@ -277,7 +321,7 @@ def plugin_problem(plugin: pathlib.Path, elf: pathlib.Path, board: str = "an386"
 
 def measure(build_dir: pathlib.Path, board: str, precision: str, vector: str, samples: int, shift: int,
             plugin: pathlib.Path | None = None, profile: bool = False, estep_every: int = 0) -> dict:
-    fp = footprint(build_dir, board, precision)
+    fp = {**footprint(build_dir, board, precision), **flash_added(build_dir, board, precision)}
     with tempfile.TemporaryDirectory(prefix="mkc_measure_") as tmp:
         work = pathlib.Path(tmp)
         write_input(vector, work / "mkc_in.bin", samples, estep_every)
@@ -294,14 +338,37 @@ def measure(build_dir: pathlib.Path, board: str, precision: str, vector: str, sa
             "estep_every": estep_every or None, **fp, **run}
 
 
+def runtime_groups(by_member: dict) -> dict:
+    """The runtime members of flash_added's by_member summed per archive: libm, libc, libgcc."""
+    out: dict[str, int] = {}
+    for member, n in by_member.items():
+        if origin_of(member) == "runtime":
+            lib = member.split("(", 1)[0].removesuffix(".a").replace("libc_nano", "libc")
+            out[lib] = out.get(lib, 0) + n
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
+def flash_markdown(rows: list[dict]) -> str:
+    """The flash the library adds per build, split into its own code and the runtime it pulls in."""
+    lines = ["| build | flash added by the library, B | its own code and constants | runtime it pulls in "
+             "(by archive) | firmware with / without it |", "|---|---:|---:|---|---:|"]
+    for r in rows:
+        o = r["added_by_origin"]
+        groups = ", ".join(f"{k} {n:,}" for k, n in runtime_groups(r["added_by_member"]).items())
+        lines.append(f"| {PRECISION_NAMES[r['precision']]} | {r['flash_added_bytes']:,} | {o['library']:,} | "
+                     f"{o['runtime']:,} ({groups}) | {r['flash_app_bytes']:,} / {r['flash_base_bytes']:,} |")
+    return "\n".join(lines)
+
+
 def markdown(rows: list[dict]) -> str:
-    head = ("| build | text+rodata B (library / runtime / program) | state B | data+bss B | stack B "
-            "| instructions/sample, amortised | between checkpoints (median) | worst sample | at sample |")
-    lines = [head, "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    head = ("| build | flash added, B | text+rodata B (library / runtime / program) | state B | data+bss B "
+            "| stack B | instructions/sample, amortised | between checkpoints (median) | worst sample | at sample |")
+    lines = [head, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         o = r["text_by_origin"]
         kind = "checkpoint" if r["worst_is_checkpoint"] else "E-step" if r["worst_has_estep"] else "sample"
-        lines.append(f"| {PRECISION_NAMES[r['precision']]} | {r['text_bytes']:,} ({o['library']:,} / {o['runtime']:,} / "
+        lines.append(f"| {PRECISION_NAMES[r['precision']]} | {r['flash_added_bytes']:,} | {r['text_bytes']:,} "
+                     f"({o['library']:,} / {o['runtime']:,} / "
                      f"{o['program']:,}) | {r['state_bytes']:,} | {r['ram_bytes']:,} | {r['stack_bytes']:,} | "
                      f"{r['insns_per_sample']:,.0f} | {r['insns_quiet_median']:,.0f} | {r['insns_worst']:,.0f} | "
                      f"{r['worst_sample']} ({kind}) |")
@@ -310,7 +377,7 @@ def markdown(rows: list[dict]) -> str:
 
 def target_table(rows: list[dict]) -> str:
     """Each build against the acceptance targets (met: yes / no)."""
-    checks = (("state", "state_bytes", "state_bytes"), ("flash", "flash_bytes", "text_bytes"),
+    checks = (("state", "state_bytes", "state_bytes"), ("flash added", "flash_bytes", "flash_added_bytes"),
               ("stack", "stack_bytes", "stack_bytes"), ("instructions/sample", "insns_per_sample", "insns_per_sample"))
     lines = ["| figure | target | " + " | ".join(PRECISION_NAMES[r["precision"]] for r in rows) + " |",
              "|---|---:|" + "---:|" * len(rows)]
@@ -318,6 +385,37 @@ def target_table(rows: list[dict]) -> str:
         cells = [f"{r[rkey]:,.0f} ({'met' if r[rkey] <= TARGETS[tkey] else 'not met'})" for r in rows]
         lines.append(f"| {label} | <= {TARGETS[tkey]:,} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def flash_main(args) -> int:
+    """--flash-only: the footprint firmware with and without the library, per precision (arm-none-eabi-gcc
+    only: no qemu needed)."""
+    if shutil.which("arm-none-eabi-gcc") is None:
+        print("cannot measure: no `arm-none-eabi-gcc` on PATH (apt-get install gcc-arm-none-eabi "
+              "libnewlib-arm-none-eabi)", file=sys.stderr)
+        return 2
+    build_dir = args.build.resolve() if args.build else None
+    bdir = build_dir or FW.FIRMWARE_DIR / "build"
+    try:
+        build(build_dir, tuple(f"{bdir}/qemu/{args.board}_{kind}_{p}.elf"
+                               for p in args.precisions for kind in ("footprint", "footprint_base")))
+        rows = [{"board": args.board, "core": CORES[args.board], "precision": p, **flash_added(bdir, args.board, p)}
+                for p in args.precisions]
+    except MeasureError as exc:
+        print(f"measurement failed: {exc}", file=sys.stderr)
+        return 1
+    print(f"{CORES[args.board]}: the flash the library adds to a firmware (text + data of "
+          f"target/footprint_main.c minus target/footprint_base_main.c; -Os, --gc-sections, newlib nano)\n")
+    print(flash_markdown(rows))
+    for r in rows:
+        ok = "met" if r["flash_added_bytes"] <= TARGETS["flash_bytes"] else "not met"
+        print(f"\n{PRECISION_NAMES[r['precision']]}: {r['flash_added_bytes']:,} B against <= "
+              f"{TARGETS['flash_bytes']:,} ({ok}); the runtime members it adds: " + ", ".join(
+                  f"{k} {n:,}" for k, n in r["added_by_member"].items() if origin_of(k) == "runtime"))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"rows": rows, "targets": TARGETS}, indent=2) + "\n")
+    return 0
 
 
 def main(argv=None) -> int:
@@ -334,8 +432,12 @@ def main(argv=None) -> int:
                     help="skip the cross-check by the instruction-counting qemu plugin (it slows qemu ~1.5x)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="also list the N functions that execute the most instructions over the whole run (plugin)")
+    ap.add_argument("--flash-only", action="store_true",
+                    help="only the flash the library adds (builds the footprint programs; no emulator)")
     ap.add_argument("--json", type=pathlib.Path, help="write the figures here")
     args = ap.parse_args(argv)
+    if args.flash_only:
+        return flash_main(args)
     why = missing_tools()
     if why:
         print(f"cannot measure: {why}", file=sys.stderr)

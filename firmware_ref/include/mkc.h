@@ -69,13 +69,16 @@ typedef struct mkc_config {
     double sigma_pull;      /* weak prior on sigma, nats per e-fold (0: the paper's ML) */
 } mkc_config;
 
-/* ---- the state (mkc_stream/state.py STATE_FIELDS; X, Y in the outer struct, scratch R, ebuf last) ----
+/* ---- the state (mkc_stream/state.py STATE_FIELDS; X, Y in the outer struct, scratch ebuf last; the
+ * Python scratch R, the window's residuals, is not kept: they are formed where they are used) ----
  * The Python state's small arrays are named structs here (mkc_fields.h, generated from the same
  * index table): icfg + fcfg = cfg, cnt = counters, fst = fit; e.g. cal.core.cfg.window,
  * cal.core.counters.esteps, cal.core.fit.cond. Read any field; write only through the API. */
 typedef struct mkc_core {
     mkc_core_cfg cfg;                /* the settings it runs with (Python icfg, fcfg) */
     int32_t rows;                    /* where rows come from: 0 X/Y of mkc_stream_t, 1 raw of mkc_mag_t */
+    int32_t defer_weights;           /* 0: rebuilds record C; 1, 2: they do not (2: one has run) while the
+                                        magnetometer's cold-start check keeps the warm estimate in C's bytes */
     mkc_real C[MKC_W][MKC_M];        /* the c = w/d^2 each row added */
     mkc_acc A[MKC_N][MKC_N];         /* weighted normal matrix (eq. 15), lower triangle */
     mkc_acc b[MKC_N];                /* weighted normal vector (eq. 15) */
@@ -90,13 +93,16 @@ typedef struct mkc_core {
     mkc_real tprev[MKC_N];           /* scratch: previous theta */
     mkc_counters counters;           /* what it has done: samples, E-steps, restarts, last status (cnt) */
     mkc_core_fit fit;                /* condition of A, last E-step objective (fst) */
-    /* scratch last (C .. fit are what a saved estimate needs; see MKC_CORE_SAVED_BYTES) */
-    mkc_real R[MKC_W][MKC_M];        /* scratch: window residuals */
-    mkc_real ebuf[MKC_W];            /* scratch: one channel's residuals */
+    /* scratch last (A .. fit and C are what a saved estimate needs; see MKC_CORE_SAVED_BYTES) */
+    mkc_real ebuf[MKC_W];            /* scratch: one channel's squared residuals (E-step), checkpoint scratch */
 } mkc_core_t;
 
-/* Bytes of the estimate's state (C through fit): what the magnetometer's cold-start check saves. */
-#define MKC_CORE_SAVED_BYTES (offsetof(mkc_core_t, R) - offsetof(mkc_core_t, C))
+/* Bytes of the estimate's state after its weights (A through fit): what the magnetometer's cold-start
+ * check keeps in the bytes of C (the weights themselves are recomputed from tprev, sigma and d); the
+ * part beyond C's size, if any (a window of fewer than ~250 slots), in mkc_mag_t.saved_tail. */
+#define MKC_CORE_SAVED_BYTES (offsetof(mkc_core_t, ebuf) - offsetof(mkc_core_t, A))
+#define MKC_CORE_C_BYTES (sizeof(mkc_real) * MKC_W * MKC_M)
+#define MKC_SAVED_TAIL_BYTES (MKC_CORE_SAVED_BYTES > MKC_CORE_C_BYTES ? MKC_CORE_SAVED_BYTES - MKC_CORE_C_BYTES : 1)
 
 typedef struct mkc_stream {
     mkc_core_t core;                 /* first member: the kernels see a mkc_core_t */
@@ -188,13 +194,18 @@ struct mkc_mag;
 /* Called at the end of every checkpoint (E-step) with the calibrator (its last_event filled). */
 typedef void (*mkc_mag_listener)(void *user, const struct mkc_mag *cal);
 
+#if MKC_W > 32768
+#error "mkc.h: MKC_W > 32768 (mkc_mag_t.slot_stamp is 16 bits)"
+#endif
+
 typedef struct mkc_mag {
     mkc_core_t core;                 /* first member: the kernels see a mkc_core_t (rows = 1) */
     mkc_real raw[MKC_W][3];          /* each slot's raw sample: features are recomputed, not stored */
-    uint32_t slot_age[MKC_W];        /* samples seen when the slot was written (mod 2^32) */
     uint16_t cell_count[MKC_CELLS];  /* samples of the window per direction cell */
     uint8_t slot_cell[MKC_W];        /* direction cell of each slot */
-    mkc_real work[MKC_W];            /* checkpoint scratch (medians, sums) */
+    uint16_t slot_stamp[MKC_W];      /* the order the slots were written in (smaller: older), as the
+                                        reference's ages; renumbered 0 .. count-1 when next_stamp is full */
+    uint16_t next_stamp;             /* the next slot written gets this stamp */
     mkc_real c0[3], s0;              /* feature normalisation (m - c0) / s0; s0 <= 0: not set yet */
     mkc_real in_raw[3];              /* the sample being fed (written to raw[slot] by learn_one) */
     int32_t policy, unit_ut, init_samples, pending, provisional, failed, misfit, has_confirmed;
@@ -210,7 +221,7 @@ typedef struct mkc_mag {
     mkc_mag_event last_event;
     mkc_mag_listener listener;
     void *listener_user;
-    unsigned char saved[MKC_CORE_SAVED_BYTES]; /* the warm estimate while a cold start checks it */
+    unsigned char saved_tail[MKC_SAVED_TAIL_BYTES]; /* the saved estimate's bytes beyond C's size */
 } mkc_mag_t;
 
 /* Defaults of MagCalibrator(window=MKC_W, estep_every=MKC_K, unit="uT", policy="direction"). */

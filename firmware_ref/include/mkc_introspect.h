@@ -20,6 +20,9 @@ enum {  /* mkc_get / mkc_set fields; window-sized fields cover the count samples
     MKC_F_L, MKC_F_DEQ, MKC_F_XS, MKC_F_TPREV, MKC_F_SLOT_AGE, MKC_F_SLOT_CELL, MKC_F_CELL_COUNT,
     MKC_F_MAG_FLAGS   /* provisional, failed, misfit, has_confirmed, confirmed b (3), F, first_accepted_at */
 };
+/* MKC_F_SLOT_AGE: the state keeps the slots' age order only (16-bit stamps); mkc_set takes ages (the
+ * reference's samples seen when each slot was written) and stamps them 0 .. count-1 in their order,
+ * mkc_get gives the stamps (smaller: older). */
 /* Copy field `which` of a state (mkc_stream_t or mkc_mag_t, as `kind` 0/1) as doubles into out
  * (cap entries); returns the number of entries, or -1. Counts are converted to double. */
 int mkc_get(const void *state, int kind, int which, double *out, int cap);

@@ -1,8 +1,9 @@
 /* confidence.c: the streaming calibrator's switching test and the rest-cloud test of its sphere fit;
  * calib/confidence.py paired_gain / supports_switch and calib/quality.py sphere_spread.
  *
- * Scratch at a checkpoint, after the quality figures: core.ebuf and core.R hold the two calibrations'
- * relative residuals, g->work the copies that medians reorder and the compacted differences.
+ * Scratch at a checkpoint, after the quality figures: core.ebuf holds the copies that medians
+ * reorder and the compacted differences; both calibrations' relative residuals are recomputed where
+ * used (the same operations, so the same bits).
  */
 #include "mkc_internal.h"
 
@@ -25,19 +26,25 @@ static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration 
  * direction cell c (G occupied cells). */
 int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *trial, const mkc_mag_calibration *acc)
 {
-    mkc_real *et = g->core.ebuf, *ea = &g->core.R[0][0], *w = g->work, m[3], med, mad, thr, gain;
+    mkc_real *w = g->core.ebuf, m[3], med, mad, thr, gain;
     mkc_creal sums[MKC_N_CELLS], ss = CR(0.0), se;
     int used[MKC_N_CELLS], k, n = 0, j, G = 0;
-    for (k = 0; k < count; k++) {
-        et[k] = calibrated(g, k, trial, m) / trial->field - RC(1.0);
-        ea[k] = calibrated(g, k, acc, m) / acc->field - RC(1.0);
-    }
-    mad = mkc__mad_about_median(et, count, w, &med);
-    thr = RC(MKC_OUTLIER_K) * mad;
-#define IS_IN(k) (!(mad != RC(0.0) && MKC_FABS_R(et[(k)] - med) > thr) && isfinite(et[(k)]) && isfinite(ea[(k)]))
+#define ET(k) (calibrated(g, (k), trial, m) / trial->field - RC(1.0))
+#define EA(k) (calibrated(g, (k), acc, m) / acc->field - RC(1.0))
+    /* the MAD of e_t (stats.c mkc__mad_about_median's steps) */
     for (k = 0; k < count; k++)
-        if (IS_IN(k))
-            w[n++] = ea[k] * ea[k] - et[k] * et[k];
+        w[k] = ET(k);
+    med = mkc__median(w, count);
+    for (k = 0; k < count; k++)
+        w[k] = MKC_FABS_R(ET(k) - med);
+    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    thr = RC(MKC_OUTLIER_K) * mad;
+#define IS_IN(et, ea) (!(mad != RC(0.0) && MKC_FABS_R((et) - med) > thr) && isfinite(et) && isfinite(ea))
+    for (k = 0; k < count; k++) {
+        mkc_real et = ET(k), ea = EA(k);
+        if (IS_IN(et, ea))
+            w[n++] = ea * ea - et * et;
+    }
     if (n < 2)
         return 0;
     gain = mkc__pairwise_sum(w, n) / (mkc_real)n;
@@ -46,7 +53,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         used[k] = 0;
     }
     for (k = 0, j = 0; k < count; k++) {
-        if (IS_IN(k)) {
+        mkc_real et = ET(k), ea = EA(k);
+        if (IS_IN(et, ea)) {
             mkc_real nk = calibrated(g, k, trial, m);
             /* numpy: cal / max(|cal|, 1e-300), the zero vector's cell at |cal| = 0 */
             int c = nk > RC(0.0) ? mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)
@@ -56,6 +64,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         }
     }
 #undef IS_IN
+#undef EA
+#undef ET
     for (k = 0; k < MKC_N_CELLS; k++) {
         ss += sums[k] * sums[k];
         G += used[k];
@@ -71,7 +81,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
 /* sphere_spread: 1.4826 MAD of |m - c| - r over the window, relative to r (HUGE_VAL for r <= 0). */
 mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r)
 {
-    mkc_real *w = g->work, med;
+    mkc_real *w = g->core.ebuf, med;
     int k;
     if (!(r > RC(0.0)) || count <= 0)
         return RC(HUGE_VAL);

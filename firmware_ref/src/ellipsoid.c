@@ -47,9 +47,9 @@ int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_re
     }
     eig3((const mkc_creal(*)[3])A, eigA, NULL);
     if (eigA[0] * eigA[2] <= CR(0.0)) {
-        reason->v[0] = (double)eigA[0];
-        reason->v[1] = (double)eigA[1];
-        reason->v[2] = (double)eigA[2];
+        reason->v[0] = MKC_REASON_VALUE(eigA[0]);
+        reason->v[1] = MKC_REASON_VALUE(eigA[1]);
+        reason->v[2] = MKC_REASON_VALUE(eigA[2]);
         return MKC_REASON_INDEFINITE;
     }
     if (mkc__solve3((const mkc_creal(*)[3])A, B, r0) != MKC_OK)
@@ -65,7 +65,7 @@ int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_re
             g->M[i][j] = A[i][j] / k;
     eig3((const mkc_creal(*)[3])g->M, lam, NULL);
     if (!(lam[0] > CR(0.0))) {
-        reason->v[0] = (double)k;
+        reason->v[0] = MKC_REASON_VALUE(k);
         return MKC_REASON_EMPTY;
     }
     for (i = 0; i < 3; i++)

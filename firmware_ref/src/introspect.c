@@ -20,6 +20,20 @@ static int put(double *out, int cap, int k, double v)
     return k + 1;
 }
 
+/* MKC_F_SLOT_AGE as written: stamps 0 .. count-1 in the order of the ages in[0..count-1] (ties: the
+ * lower slot first, as the reference's choice). */
+static void set_stamps(mkc_mag_t *g, const double *in, int count)
+{
+    int s, t;
+    for (s = 0; s < count; s++) {
+        int rank = 0;
+        for (t = 0; t < count; t++)
+            rank += in[t] < in[s] || (in[t] == in[s] && t < s);
+        g->slot_stamp[s] = (uint16_t)rank;
+    }
+    g->next_stamp = (uint16_t)count;
+}
+
 int mkc_get(const void *state, int kind, int which, double *out, int cap)
 {
     const mkc_core_t *c = (const mkc_core_t *)state;
@@ -129,7 +143,7 @@ int mkc_get(const void *state, int kind, int which, double *out, int cap)
         if (!g)
             return -1;
         for (s = 0; s < count; s++)
-            k = put(out, cap, k, (double)g->slot_age[s]);
+            k = put(out, cap, k, (double)g->slot_stamp[s]);
         break;
     case MKC_F_SLOT_CELL:
         if (!g)
@@ -223,7 +237,7 @@ int mkc_set(void *state, int kind, int which, const double *in, int n)
     case MKC_F_C0S0: for (j = 0; j < 3; j++) g->c0[j] = (mkc_real)in[j]; g->s0 = (mkc_real)in[3]; break;
     case MKC_F_X: for (s = 0; s < count; s++) for (i = 0; i < m; i++) for (j = 0; j < np; j++) st->X[s][i][j] = (mkc_real)in[k++]; break;
     case MKC_F_Y: for (s = 0; s < count; s++) for (i = 0; i < m; i++) st->Y[s][i] = (mkc_real)in[k++]; break;
-    case MKC_F_SLOT_AGE: for (s = 0; s < count; s++) g->slot_age[s] = (uint32_t)(int64_t)in[s]; break;
+    case MKC_F_SLOT_AGE: set_stamps(g, in, count); break;
     case MKC_F_SLOT_CELL:
         for (s = 0; s < count; s++) {
             if (in[s] < 0 || in[s] >= MKC_CELLS)

@@ -149,14 +149,14 @@ static int try_final_normalisation(mkc_mag_t *g, int count, int64_t seen, int64_
     if (ok && spread > RC(MKC_MAX_SPHERE_SPREAD)) {
         g->last_reason.code = MKC_REASON_MOTION_WAIT;
         g->last_reason.fails = 0;
-        g->last_reason.v[0] = (double)spread;
+        g->last_reason.v[0] = MKC_REASON_VALUE(spread);
         fail_event(g, seen, esteps);
         return 0;
     }
     if (!ok || cov < RC(MKC_MIN_SPHERE_COVERAGE)) {
         g->last_reason.code = MKC_REASON_COVERAGE_WAIT;
         g->last_reason.fails = 0;
-        g->last_reason.v[0] = (double)cov;
+        g->last_reason.v[0] = MKC_REASON_VALUE(cov);
         fail_event(g, seen, esteps);
         return 0;
     }
@@ -179,28 +179,83 @@ static int needs_confirmation(const mkc_mag_t *g, const mkc_real *b, mkc_real F)
     return !(MKC_SQRT_C(d0 * d0 + d1 * d1 + d2 * d2) <= tol && MKC_FABS_C((mkc_creal)(F - g->confirmed_F)) <= tol);
 }
 
-static void copy_bytes(unsigned char *dst, const unsigned char *src, size_t n)
+/* The cold-start check runs in the estimate's own state and keeps the warm one meanwhile in its
+ * weights' bytes: A .. fit go into C's bytes (the part beyond them into saved_tail) and the cold
+ * start's rebuilds leave C alone. The weights are not kept: at a checkpoint they are what the last
+ * rebuild round recorded (at tprev, sigma, d), recomputed to the same bits afterwards. Returns 0,
+ * keeping nothing, when C is not that (a rebuild failed and the restart after it stopped before
+ * rebuilding, or fp_rounds = 0): the check is not run then. */
+static int keep_warm_estimate(mkc_mag_t *g)
 {
+    mkc_core_t *c = &g->core;
+    const unsigned char *src = (const unsigned char *)(void *)c + offsetof(mkc_core_t, A);
+    unsigned char *inC = (unsigned char *)(void *)c->C;
     size_t k;
+    if (!mkc__weights_recorded(c))
+        return 0;
+    for (k = 0; k < MKC_CORE_SAVED_BYTES; k++) {
+        if (k < MKC_CORE_C_BYTES)
+            inC[k] = src[k];
+        else
+            g->saved_tail[k - MKC_CORE_C_BYTES] = src[k];
+    }
+    c->defer_weights = 1;
+    return 1;
+}
+
+/* n bytes of the kept estimate from byte `offset` of mkc_core_t (a field from A .. fit) into to. */
+static void kept_bytes(const mkc_mag_t *g, size_t offset, void *to, size_t n)
+{
+    const unsigned char *inC = (const unsigned char *)(const void *)g->core.C;
+    unsigned char *dst = (unsigned char *)to;
+    size_t k, from = offset - offsetof(mkc_core_t, A);
     for (k = 0; k < n; k++)
-        dst[k] = src[k];
+        dst[k] = from + k < MKC_CORE_C_BYTES ? inC[from + k] : g->saved_tail[from + k - MKC_CORE_C_BYTES];
+}
+
+/* The check agreed: the warm estimate back, bytes for bytes, and its weights recomputed. */
+static void restore_warm_estimate(mkc_mag_t *g)
+{
+    mkc_core_t *c = &g->core;
+    kept_bytes(g, offsetof(mkc_core_t, A), (unsigned char *)(void *)c + offsetof(mkc_core_t, A),
+               MKC_CORE_SAVED_BYTES);
+    mkc__record_weights_at(c, c->tprev, c->sigma, c->d);
+    c->defer_weights = 0;
+}
+
+/* The stream continues from the cold start: its weights are those its last rebuild round would
+ * have recorded; where no round ran (a cold start that stopped before any) the warm ones, as C was
+ * then left alone, recomputed from the kept tprev, sigma, d. */
+static void keep_cold_estimate(mkc_mag_t *g)
+{
+    mkc_core_t *c = &g->core;
+    if (c->defer_weights == 2) {
+        mkc__record_weights_at(c, c->tprev, c->sigma, c->d);
+    } else {
+        mkc_real th[MKC_N], sg[MKC_M], dd[MKC_M];
+        kept_bytes(g, offsetof(mkc_core_t, tprev), th, sizeof th);
+        kept_bytes(g, offsetof(mkc_core_t, sigma), sg, sizeof sg);
+        kept_bytes(g, offsetof(mkc_core_t, d), dd, sizeof dd);
+        mkc__record_weights_at(c, th, sg, dd);
+    }
+    c->defer_weights = 0;
 }
 
 /* _cold_start_disagreement: batch MKC-EM from scratch on the window, in the estimate's own state.
  * Returns the disagreement max(|b_cold - b|, |F_cold - F|) (HUGE_VAL when the cold start gives no
- * ellipsoid). If it agrees, the warm estimate is restored (nothing changes); otherwise the stream
- * continues from the cold start and *have_cold says whether cold_* hold its calibration. */
+ * ellipsoid, or is not run because the warm weights could not be recomputed: keep_warm_estimate;
+ * the reference runs it there). If it agrees, the warm estimate is restored (nothing changes);
+ * otherwise the stream continues from the cold start and *have_cold says whether cold_* hold its
+ * calibration. */
 static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b, mkc_real F, int *have_cold,
                                          mkc_real *bc, mkc_real Sc[3][3], mkc_real *Fc, mkc_real *qc)
 {
-    unsigned char *state = (unsigned char *)(void *)&g->core + offsetof(mkc_core_t, C);
     mkc__geometry geom;
     mkc_mag_reason unused;
     mkc_creal bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF, sc[3];
     mkc_real sb[3], sF = RC(0.0), theta0[9];
     int j, k, have_sphere = 0;
     *have_cold = 0;
-    copy_bytes(g->saved, state, MKC_CORE_SAVED_BYTES);
     /* from the window's own trimmed sphere (a high-breakdown start, independent of the warm trial);
      * from WLS only when the window gives no sphere around the features' origin */
     if (count >= 8 && mkc__robust_sphere_fit(g, count, sb, &sF)) {
@@ -208,12 +263,16 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
             sc[j] = (mkc_creal)((sb[j] - g->c0[j]) / g->s0);
         have_sphere = mkc__sphere_theta(sc, (mkc_creal)(sF / g->s0), theta0);
     }
+    if (!keep_warm_estimate(g))
+        return CR(HUGE_VAL);
     if (have_sphere)
         mkc__cold_start_at(&g->core, MKC_COLD_START_ROUNDS, theta0);
     else
         mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
-    if (mkc__geometry_from_theta(g->core.theta, &geom, &unused) != MKC_REASON_NONE)
+    if (mkc__geometry_from_theta(g->core.theta, &geom, &unused) != MKC_REASON_NONE) {
+        keep_cold_estimate(g);
         return CR(HUGE_VAL);
+    }
     mkc__raw_geometry(&geom, g->c0, g->s0);
     mkc__calibration_from_geometry(&geom, bd, Sd, &Fd);
     e0 = bd[0] - (mkc_creal)b[0];
@@ -223,9 +282,10 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
     dF = MKC_FABS_C(Fd - (mkc_creal)F);
     dis = dF > dis ? dF : dis;
     if (dis <= (mkc_creal)g->rules.max_disagreement_rel * MKC_FABS_C((mkc_creal)F)) {
-        copy_bytes(state, g->saved, MKC_CORE_SAVED_BYTES);
+        restore_warm_estimate(g);
         return dis;
     }
+    keep_cold_estimate(g);
     for (j = 0; j < 3; j++) {
         bc[j] = (mkc_real)bd[j];
         for (k = 0; k < 3; k++)
@@ -504,7 +564,7 @@ static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
     g->in_raw[2] = mz;
     st = mkc__learn_one(c, xk, yk, slot);
     g->slot_cell[slot] = (uint8_t)cell;
-    g->slot_age[slot] = (uint32_t)c->counters.seen;
+    mkc__slot_written(g, slot, count);
     g->cell_count[cell] += 1;
     if (c->counters.esteps > esteps && c->counters.status != MKC_WARMING_UP && c->counters.since == 0)
         checkpoint(g);
@@ -515,7 +575,7 @@ static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
 static void first_normalisation(mkc_mag_t *g)
 {
     int n = g->pending, k, j;
-    mkc_real *w = g->work;
+    mkc_real *w = g->core.ebuf;               /* free: no E-step yet */
     for (j = 0; j < 3; j++) {
         for (k = 0; k < n; k++)
             w[k] = g->raw[k][j];
@@ -592,12 +652,12 @@ void mkc_mag_status_reason(const mkc_mag_t *cal, mkc_mag_reason *out)
         out->v[j] = 0.0;
     if (!(cal->s0 > RC(0.0))) {
         out->code = MKC_REASON_PENDING;
-        out->v[0] = cal->pending;
-        out->v[1] = cal->init_samples;
+        out->v[0] = MKC_REASON_VALUE(cal->pending);
+        out->v[1] = MKC_REASON_VALUE(cal->init_samples);
     } else if (cal->core.counters.status == MKC_WARMING_UP) {
         out->code = MKC_REASON_WINDOW;
-        out->v[0] = (double)cal->core.counters.count;
-        out->v[1] = cal->core.cfg.min_samples;
+        out->v[0] = MKC_REASON_VALUE((int32_t)cal->core.counters.count);   /* <= W */
+        out->v[1] = MKC_REASON_VALUE(cal->core.cfg.min_samples);
     } else if (cal->core.counters.esteps == 0 && cal->core.counters.status == MKC_SINGULAR) {
         out->code = MKC_REASON_DEGENERATE;      /* no checkpoint can come: samples on a curve or a plane */
     } else {

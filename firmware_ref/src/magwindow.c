@@ -75,19 +75,18 @@ static int some_cell_fuller(const uint16_t *cc, unsigned v)
     return (hit & 0x80008000u) != 0;
 }
 
-/* The oldest of *best (age *best_age; -1: none yet) and the slots from..to-1 of cell `target`.
+/* The oldest of *best (stamp *best_stamp; -1: none yet) and the slots from..to-1 of cell `target`.
  * Slots are visited in increasing order and only a strictly older slot replaces the best, so ties
  * go to the lowest slot as in one full scan. */
-static int older_slot(const mkc_mag_t *g, int target, int from, int to, int best, uint32_t *best_age)
+static int older_slot(const mkc_mag_t *g, int target, int from, int to, int best, unsigned *best_stamp)
 {
-    uint32_t now = (uint32_t)g->core.counters.seen;
     int s;
     for (s = from; s < to; s++) {
         if (g->slot_cell[s] == target) {
-            uint32_t age = now - g->slot_age[s];    /* modular: how long ago */
-            if (best < 0 || age > *best_age) {
+            unsigned stamp = g->slot_stamp[s];
+            if (best < 0 || stamp < *best_stamp) {
                 best = s;
-                *best_age = age;
+                *best_stamp = stamp;
             }
         }
     }
@@ -102,25 +101,24 @@ static int oldest_slot_of_cell(const mkc_mag_t *g, int target, int W)
 {
     const uint8_t *sc = g->slot_cell;
     const uint32_t ones = 0x01010101u, highs = 0x80808080u, pattern = (uint32_t)target * ones;
-    uint32_t best_age = 0;
+    unsigned best_stamp = 0;
     int s, best = -1;
     for (s = 0; s + 8 <= W; s += 8) {
         uint32_t x = four_cells(sc + s) ^ pattern, y = four_cells(sc + s + 4) ^ pattern;
         uint32_t in_x = (x - ones) & ~x & highs, in_y = (y - ones) & ~y & highs;
         if (in_x | in_y) {
             if (in_x)
-                best = older_slot(g, target, s, s + 4, best, &best_age);
+                best = older_slot(g, target, s, s + 4, best, &best_stamp);
             if (in_y)
-                best = older_slot(g, target, s + 4, s + 8, best, &best_age);
+                best = older_slot(g, target, s + 4, s + 8, best, &best_stamp);
         }
     }
-    return older_slot(g, target, s, W, best, &best_age);    /* the last W % 8 slots */
+    return older_slot(g, target, s, W, best, &best_stamp);    /* the last W % 8 slots */
 }
 
-/* Slot for a new sample of direction `cell`. slot_age holds the low 32 bits of the samples seen
- * when each slot was written; "oldest" is the largest age counted back from now, which orders the
- * slots as the reference's int64 ages do while no sample stays in the window for 2^32 samples.
- * The target is the reference's: `cell` when its count is the largest, else the first fullest cell. */
+/* Slot for a new sample of direction `cell`: the target cell's oldest slot, i.e. its smallest stamp
+ * (stamps order the slots as the reference's ages do, see mkc__slot_written). The target is the
+ * reference's: `cell` when its count is the largest, else the first fullest cell. */
 int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W)
 {
     const uint16_t *cc = g->cell_count;
@@ -149,4 +147,26 @@ void mkc__recount_cells(mkc_mag_t *g, int count)
         g->slot_cell[s] = (uint8_t)cell;
         g->cell_count[cell] += 1;
     }
+}
+
+/* Stamps 0 .. count-1 in the order of the present ones (distinct): the k-th smallest stamp is >= k,
+ * so the slots renumbered so far hold 0 .. r-1 and the others still hold stamps >= r. */
+static void renumber_stamps(mkc_mag_t *g, int count)
+{
+    int r, s;
+    for (r = 0; r < count; r++) {
+        int best = -1;
+        for (s = 0; s < count; s++)
+            if (g->slot_stamp[s] >= r && (best < 0 || g->slot_stamp[s] < g->slot_stamp[best]))
+                best = s;
+        g->slot_stamp[best] = (uint16_t)r;
+    }
+    g->next_stamp = (uint16_t)count;
+}
+
+void mkc__slot_written(mkc_mag_t *g, int slot, int count)
+{
+    if (g->next_stamp == UINT16_MAX)                /* once per ~65,000 samples: O(count^2) */
+        renumber_stamps(g, count);
+    g->slot_stamp[slot] = g->next_stamp++;
 }

@@ -52,6 +52,42 @@ typedef char mkc__check_named_fields[
      sizeof(mkc_core_fit) == MKC_N_FSTATE * sizeof(mkc_real))
     ? 1 : -1];
 
+/* A value as the double of a reason (mkc_mag_reason.v). In the all-float build it widens the float
+ * exactly from its bits (sign; exponent rebiased 127 -> 1023, subnormals normalised; mantissa
+ * shifted to 52 bits), because on a single-precision FPU the compiler's float-to-double conversion is
+ * a call into libgcc's software double, which would then be linked for these few stores alone. */
+#if defined(MKC_USE_FLOAT) && !MKC_ACC_DOUBLE && !MKC_ESTEP_DOUBLE && MKC_CREAL_FLOAT
+static inline double mkc__reason_value(float x)
+{
+    union { float f; uint32_t u; } in;
+    union { uint64_t u; double d; } out;
+    uint32_t exponent, mantissa;
+    uint64_t exp64;
+    in.f = x;
+    exponent = (in.u >> 23) & 0xffu;
+    mantissa = in.u & 0x7fffffu;
+    if (exponent == 0xffu) {
+        exp64 = 0x7ffu;                             /* inf, NaN */
+    } else if (exponent != 0u) {
+        exp64 = (uint64_t)exponent + (1023u - 127u);
+    } else if (mantissa == 0u) {
+        exp64 = 0u;                                 /* +-0 */
+    } else {
+        exp64 = 1023u - 126u;                       /* subnormal: m 2^-149 = 1.f 2^(-126-k) */
+        while (!(mantissa & 0x800000u)) {
+            mantissa <<= 1;
+            exp64 -= 1u;
+        }
+        mantissa &= 0x7fffffu;
+    }
+    out.u = (uint64_t)(in.u >> 31) << 63 | exp64 << 52 | (uint64_t)mantissa << 29;
+    return out.d;
+}
+#define MKC_REASON_VALUE(x) mkc__reason_value((float)(x))
+#else
+#define MKC_REASON_VALUE(x) ((double)(x))
+#endif
+
 #define MKC_PI 3.141592653589793238462643383279502884
 
 /* The reference's 1e-300 floors (below them a quantity is "zero"); FLT_MIN-sized in a float type. */
@@ -161,6 +197,11 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
                    const mkc_real *theta0, int rows);
 int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int slot);
 int mkc__rebuild(mkc_core_t *c);
+/* C := the weights a rebuild round at theta with these sigma, d records for the window's rows (0
+ * elsewhere), to the same bits; mkc__weights_recorded: whether C is that for tprev, sigma, d, as the
+ * last rebuild round leaves it. */
+void mkc__record_weights_at(mkc_core_t *c, const mkc_real *theta, const mkc_real *sigma, const mkc_real *d);
+int mkc__weights_recorded(const mkc_core_t *c);
 void mkc__estep_window(mkc_core_t *c);
 int mkc__restart(mkc_core_t *c);
 int mkc__cold_start(mkc_core_t *c, int rounds);
@@ -171,6 +212,8 @@ int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0);
 int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz);
 int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W);
 void mkc__recount_cells(mkc_mag_t *g, int count);
+/* slot has just been written (count: the window's samples before): it gets the newest stamp. */
+void mkc__slot_written(mkc_mag_t *g, int slot, int count);
 
 /* ---- stats.c (numpy's reductions, reproduced) ---- */
 /* numpy's pairwise summation of x[0..n-1] (np.sum / np.mean of a contiguous float64 array). */

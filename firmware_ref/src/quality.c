@@ -1,14 +1,15 @@
 /* quality.c: quality figures and the acceptance predicate of a trial calibration;
  * calib/quality.py quality_figures, calib/fit.py weighted_condition, calib/acceptance.py check.
  *
- * Scratch at a checkpoint (the E-step and rebuild are done): core.ebuf holds |m_cal|, core.R the
- * norm residuals r = |m_cal| - F, g->work the copies that medians reorder and the compacted arrays
- * numpy's means sum (pairwise, in array order).
+ * Scratch at a checkpoint (the E-step and rebuild are done): core.ebuf, the one window-sized
+ * array, holds the copies that medians reorder and the compacted arrays numpy's means sum
+ * (pairwise, in array order); the norms |m_cal| and residuals |m_cal| - F are recomputed from raw
+ * where needed (the same operations, so the same bits), not stored.
  */
 #include "mkc_internal.h"
 
 
-/* np.std of x[0..n-1] (work: n scratch values): sqrt(mean((x - mean(x))^2)). */
+/* np.std of x[0..n-1] (work: n scratch values, may be x itself): sqrt(mean((x - mean(x))^2)). */
 static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
 {
     mkc_real mean = mkc__pairwise_sum(x, n) / (mkc_real)n;
@@ -20,55 +21,73 @@ static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
     return MKC_SQRT_R(mkc__pairwise_sum(work, n) / (mkc_real)n);
 }
 
+/* |m_cal| of window row k, m_cal = S (raw_k - b); m (may be NULL): m_cal. */
+static mkc_real calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3], mkc_real *m)
+{
+    mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2], mm[3];
+    int i;
+    if (!m)
+        m = mm;
+    for (i = 0; i < 3; i++)
+        m[i] = v0 * S[i][0] + v1 * S[i][1] + v2 * S[i][2];
+    return MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+}
+
 void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
                           mkc_real condition, mkc_real *q)
 {
-    mkc_real *nrm = g->core.ebuf, *r = &g->core.R[0][0], *w = g->work;
+    mkc_real *w = g->core.ebuf;
     mkc_real med, mad, thr;
     int hit[MKC_N_CELLS], k, nin = 0, nout = 0;
     for (k = 0; k < MKC_N_CELLS; k++)
         hit[k] = 0;
-    /* m_cal = (raw - b) S^T; r = |m_cal| - F; cells of m_cal / |m_cal| */
+    /* m_cal = (raw - b) S^T; cells of m_cal / |m_cal|; r = |m_cal| - F (RES) */
     for (k = 0; k < count; k++) {
-        mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2], m[3], nk;
-        int i;
-        for (i = 0; i < 3; i++)
-            m[i] = v0 * S[i][0] + v1 * S[i][1] + v2 * S[i][2];
-        nk = MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
-        nrm[k] = nk;
-        r[k] = nk - F;
+        mkc_real m[3], nk = calibrated_norm(g, k, b, S, m);
         if (nk > RC(0.0))
             hit[mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)] = 1;
     }
-    /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD */
-    mad = mkc__mad_about_median(r, count, w, &med);
+#define RES(k) (calibrated_norm(g, (k), b, S, NULL) - F)
+    /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD (stats.c mkc__mad_about_median's steps) */
+    for (k = 0; k < count; k++)
+        w[k] = RES(k);
+    med = mkc__median(w, count);
+    for (k = 0; k < count; k++)
+        w[k] = MKC_FABS_R(RES(k) - med);
+    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
     thr = RC(MKC_OUTLIER_K) * mad;
-#define IS_OUT(k) (mad != RC(0.0) && MKC_FABS_R(r[(k)] - med) > thr)
+#define IS_OUT(r) (mad != RC(0.0) && MKC_FABS_R((r) - med) > thr)
     /* residual_rms: over the inliers */
     for (k = 0; k < count; k++) {
-        if (IS_OUT(k)) {
+        mkc_real r = RES(k);
+        if (IS_OUT(r)) {
             nout++;
         } else {
-            w[nin++] = r[k] * r[k];
+            w[nin++] = r * r;
         }
     }
     /* (nin >= count / 2 always: at least half the residuals lie within one MAD of the median) */
     q[MKC_Q_RESIDUAL_RMS] = nin ? MKC_SQRT_R(mkc__pairwise_sum(w, nin) / (mkc_real)nin) : RC(HUGE_VAL);
-    for (k = 0; k < count; k++)
-        w[k] = r[k] * r[k];
+    for (k = 0; k < count; k++) {
+        mkc_real r = RES(k);
+        w[k] = r * r;
+    }
     q[MKC_Q_RESIDUAL_RMS_ALL] = MKC_SQRT_R(mkc__pairwise_sum(w, count) / (mkc_real)count);
-    q[MKC_Q_NORM_SPREAD] = np_std(nrm, count, w) / F;
-    /* the inliers' norms, compacted into r's storage (r is not needed afterwards: compact in
-     * place from the front, the write index never passes the read index) */
+    /* np.std of the norms, then of the inliers' norms (compacted), each in w (np_std works in place) */
+    for (k = 0; k < count; k++)
+        w[k] = calibrated_norm(g, k, b, S, NULL);
+    q[MKC_Q_NORM_SPREAD] = np_std(w, count, w) / F;
     {
         int j = 0;
         for (k = 0; k < count; k++) {
-            if (!IS_OUT(k))
-                r[j++] = nrm[k];
+            mkc_real nk = calibrated_norm(g, k, b, S, NULL);
+            if (!IS_OUT(nk - F))
+                w[j++] = nk;
         }
-        q[MKC_Q_NORM_SPREAD_INLIERS] = nin ? np_std(r, nin, w) / F : RC(HUGE_VAL);
+        q[MKC_Q_NORM_SPREAD_INLIERS] = nin ? np_std(w, nin, w) / F : RC(HUGE_VAL);
     }
 #undef IS_OUT
+#undef RES
     q[MKC_Q_COVERAGE] = mkc__coverage_of_unit_cells(hit, MKC_N_CELLS);
     q[MKC_Q_OUTLIER_FRACTION] = (mkc_real)nout / (mkc_real)count;
     q[MKC_Q_CONDITION] = condition;
@@ -83,7 +102,7 @@ mkc_real mkc__weighted_condition(mkc_mag_t *g, int count)
     int p, q, n = 9;
 #if MKC_CREAL_FLOAT
     /* The window's normal matrix A = sum_k c_k x_k x_k^T (eq. 15), which every checkpoint finds
-     * rebuilt with the current weights c = w / d^2 (window.c rebuild_with, restart, cold start), is
+     * rebuilt with the current weights c = w / d^2 (window.c mkc__rebuild, restart, cold start), is
      * that matrix divided by d^2: the same once equilibrated, without a pass over the window
      * (~1e5 instructions on a Cortex-M4F at W = 256); the figure differs by float rounding (~1e-6). */
     (void)count;
@@ -157,11 +176,11 @@ uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real f
         fails |= MKC_FAIL_DISAGREEMENT;
     reason->code = fails ? MKC_REASON_REJECTED : MKC_REASON_NONE;
     reason->fails = fails;
-    reason->v[0] = (double)cov;
-    reason->v[1] = (double)cond;
-    reason->v[2] = (double)out;
-    reason->v[3] = (double)rel;
-    reason->v[4] = (double)field;
-    reason->v[5] = (double)disagreement;
+    reason->v[0] = MKC_REASON_VALUE(cov);
+    reason->v[1] = MKC_REASON_VALUE(cond);
+    reason->v[2] = MKC_REASON_VALUE(out);
+    reason->v[3] = MKC_REASON_VALUE(rel);
+    reason->v[4] = MKC_REASON_VALUE(field);
+    reason->v[5] = MKC_REASON_VALUE(disagreement);
     return fails;
 }

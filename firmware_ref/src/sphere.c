@@ -9,21 +9,22 @@
  * N x 4 matrix. The all-float build (MKC_CHECKPOINT_DOUBLE=0) forms the residuals and G^T r in
  * float-float (mkc_ff.h), so its fit rounds to the same floats as the double build's: the stream's
  * normalisation and its cold starts begin there, and one ulp of the radius is enough to move a
- * later E-step on a flat likelihood. Scratch: g->work (per-row sums), g->core.ebuf (residuals of
- * the robust passes), g->core.R (median scratch).
+ * later E-step on a flat likelihood. Scratch: g->core.ebuf (the medians' copies, then per-row sums); the
+ * robust passes' selection is a bit mask.
  */
 #include "mkc_internal.h"
 #include "mkc_ff.h"
 
-/* the robust passes' selection: |r_k - med| <= thr (all rows when use_mask is 0) */
+/* the robust passes' selection: row k kept when bit k of keep is set (all rows when use_mask is 0) */
 typedef struct sel {
     int use_mask;
-    mkc_real med, thr;
+    uint32_t keep[(MKC_W + 31) / 32];
 } sel;
 
 static int selected(const mkc_mag_t *g, const sel *m, int k)
 {
-    return !m->use_mask || MKC_FABS_R(g->core.ebuf[k] - m->med) <= m->thr;
+    (void)g;
+    return !m->use_mask || (m->keep[k >> 5] >> (k & 31) & 1u);
 }
 
 /* Solve the symmetric positive definite 4x4 N x = r by Cholesky (mkc_creal); 0 if not PD. */
@@ -149,9 +150,9 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
         d0 = g->raw[k][0] - c[0];
         d1 = g->raw[k][1] - c[1];
         d2 = g->raw[k][2] - c[2];
-        g->work[p++] = d0 * d0 + d1 * d1 + d2 * d2;
+        g->core.ebuf[p++] = d0 * d0 + d1 * d1 + d2 * d2;
     }
-    scale = MKC_SQRT_R(mkc__pairwise_sum(g->work, nsel) / (mkc_real)nsel);
+    scale = MKC_SQRT_R(mkc__pairwise_sum(g->core.ebuf, nsel) / (mkc_real)nsel);
     if (scale == RC(0.0))
         scale = RC(1.0);
     /* columns [2 m', 1], target |m'|^2: normal equations (lower triangle, first pass), then two
@@ -208,26 +209,31 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
     return 1;
 }
 
-/* r_k = |m_k - centre| - F into g->core.ebuf; the selection |r_k - median| <= 3 * 1.4826 MAD (all
- * rows when the MAD is 0) into *s; returns how many rows it keeps. Scratch: g->core.R. */
+/* r_k = |m_k - centre| - F (recomputed, not stored); the selection |r_k - median| <= 3 * 1.4826 MAD
+ * (all rows when the MAD is 0) into *s; returns how many rows it keeps. Scratch: g->core.ebuf. */
 static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, mkc_real F, sel *s)
 {
-    mkc_real *r = g->core.ebuf, *tmp = &g->core.R[0][0], med, mad;
+    mkc_real *tmp = g->core.ebuf, med, mad, thr;
     int k, n = 0;
-    for (k = 0; k < count; k++) {
-        mkc_real d0 = g->raw[k][0] - centre[0], d1 = g->raw[k][1] - centre[1], d2 = g->raw[k][2] - centre[2];
-        r[k] = MKC_SQRT_R(d0 * d0 + d1 * d1 + d2 * d2) - F;
-        tmp[k] = r[k];
-    }
+#define DIST_RES(k) (MKC_SQRT_R((g->raw[(k)][0] - centre[0]) * (g->raw[(k)][0] - centre[0]) \
+                                + (g->raw[(k)][1] - centre[1]) * (g->raw[(k)][1] - centre[1]) \
+                                + (g->raw[(k)][2] - centre[2]) * (g->raw[(k)][2] - centre[2])) - F)
+    for (k = 0; k < count; k++)
+        tmp[k] = DIST_RES(k);
     med = mkc__median(tmp, count);
     for (k = 0; k < count; k++)
-        tmp[k] = MKC_FABS_R(r[k] - med);
+        tmp[k] = MKC_FABS_R(DIST_RES(k) - med);
     mad = RC(1.4826) * mkc__median(tmp, count);
     s->use_mask = mad > RC(0.0);
-    s->med = med;
-    s->thr = RC(3.0) * mad;
-    for (k = 0; k < count; k++)
-        n += selected(g, s, k);
+    thr = RC(3.0) * mad;
+    for (k = 0; k < (count + 31) / 32; k++)
+        s->keep[k] = 0u;
+    for (k = 0; k < count; k++) {
+        int in = !s->use_mask || MKC_FABS_R(DIST_RES(k) - med) <= thr;
+        s->keep[k >> 5] |= (uint32_t)in << (k & 31);
+        n += in;
+    }
+#undef DIST_RES
     return n;
 }
 
@@ -236,10 +242,11 @@ static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, m
  * median is more than 3 robust scales from the median distance (gross spikes). */
 int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F)
 {
-    sel all = {0, RC(0.0), RC(0.0)}, first;
+    sel all, first;
     int pass, k, j, nfirst;
-    mkc_real *tmp = &g->core.R[0][0];
+    mkc_real *tmp = g->core.ebuf;
     mkc_real cm[3];
+    all.use_mask = 0;
     for (j = 0; j < 3; j++) {
         for (k = 0; k < count; k++)
             tmp[k] = g->raw[k][j];

@@ -261,9 +261,8 @@ static int refine_theta(mkc_core_t *c)
 
 /* Fixed-point rounds of Algorithm 1 on the window (eq. (16)), at most fp_rounds: weights at the
  * current theta -> A, b from scratch (C records each row's c) -> solve; stops when
- * ||theta_new - theta|| <= fp_tol ||theta||. have_r: R already holds the residuals at theta (the
- * E-step computed them with the same loop), so the first round skips that pass. */
-static int rebuild_with(mkc_core_t *c, int have_r)
+ * ||theta_new - theta|| <= fp_tol ||theta||. */
+int mkc__rebuild(mkc_core_t *c)
 {
     int n = c->cfg.n, m = c->cfg.m;
     int count = (int)c->counters.count;
@@ -282,22 +281,21 @@ static int rebuild_with(mkc_core_t *c, int have_r)
                 c->A[p][q] = AC(0.0);
         }
         k = 0;
+        if (c->defer_weights)
+            c->defer_weights = 2;
         for (s = 0; s < count; s++) {
             for (i = 0; i < m; i++) {
                 const mkc_real *x = row_at(c, s, i, buf[k]);
                 mkc_real y = target(c, s, i);
                 mkc_real r, w, cc;
-                if (have_r && rnd == 0) {
-                    r = c->R[s][i];
-                } else {
-                    r = y;
-                    for (j = 0; j < n; j++)
-                        r -= x[j] * c->theta[j];
-                }
+                r = y;
+                for (j = 0; j < n; j++)
+                    r -= x[j] * c->theta[j];
                 w = gauss_weight(r * r * weight_exponent_scale(c->sigma[i], c->d[i]));  /* exp(-r^2/(2 d^2 s^2)) */
                 wsum += (mkc_acc)w;
                 cc = w * (RC(1.0) / (c->d[i] * c->d[i]));
-                c->C[s][i] = cc;
+                if (!c->defer_weights)
+                    c->C[s][i] = cc;
                 if (cc != RC(0.0)) {
                     px[k] = x;
                     py[k] = y;
@@ -338,12 +336,46 @@ static int rebuild_with(mkc_core_t *c, int have_r)
     return status;
 }
 
-int mkc__rebuild(mkc_core_t *c)
+/* The weight c = w / d^2 a rebuild round at theta records for row (s, i), with rebuild's operations. */
+static mkc_real weight_at(const mkc_core_t *c, int s, int i, const mkc_real *theta, mkc_real sigma, mkc_real d)
 {
-    return rebuild_with(c, 0);
+    mkc_real buf[MKC_N];
+    const mkc_real *x = row_at(c, s, i, buf);
+    mkc_real r = target(c, s, i), w;
+    int j;
+    for (j = 0; j < c->cfg.n; j++)
+        r -= x[j] * theta[j];
+    w = gauss_weight(r * r * weight_exponent_scale(sigma, d));  /* exp(-r^2/(2 d^2 s^2)) */
+    return w * (RC(1.0) / (d * d));
 }
 
-/* Algorithm 2 per channel on the window's residuals at the current theta, warm-started. */
+void mkc__record_weights_at(mkc_core_t *c, const mkc_real *theta, const mkc_real *sigma, const mkc_real *d)
+{
+    int s, i;
+    for (s = 0; s < MKC_W; s++)
+        for (i = 0; i < MKC_M; i++)
+            c->C[s][i] = RC(0.0);
+    for (s = 0; s < (int)c->counters.count; s++)
+        for (i = 0; i < c->cfg.m; i++)
+            c->C[s][i] = weight_at(c, s, i, theta, sigma[i], d[i]);
+}
+
+int mkc__weights_recorded(const mkc_core_t *c)
+{
+    int s, i, count = (int)c->counters.count;
+    for (s = 0; s < MKC_W; s++) {
+        for (i = 0; i < MKC_M; i++) {
+            int in = s < count && i < c->cfg.m;
+            if (!(c->C[s][i] == (in ? weight_at(c, s, i, c->tprev, c->sigma[i], c->d[i]) : RC(0.0))))
+                return 0;
+        }
+    }
+    return 1;
+}
+
+/* Algorithm 2 per channel on the window's residuals at the current theta, warm-started. The
+ * residuals r = y - x^T theta are formed where they are used (only their squares are kept, in
+ * ebuf); the rebuild that follows recomputes them with the same operations, so the same bits. */
 void mkc__estep_window(mkc_core_t *c)
 {
     int n = c->cfg.n, m = c->cfg.m;
@@ -351,41 +383,40 @@ void mkc__estep_window(mkc_core_t *c)
     int s, i, j;
     mkc_ereal Fsum = EC(0.0);
     mkc_real buf[MKC_N], buf2[MKC_N], th[MKC_N];
-    /* theta in a local copy: the stores to R cannot alias it, so the loads need not wait for them */
+    /* theta in a local copy: the stores to ebuf cannot alias it, so the loads need not wait for them */
     for (j = 0; j < n; j++)
         th[j] = c->theta[j];
-    s = 0;
-    if (m == 1) {
-        /* one channel: two rows per pass, two independent dot products sharing the loop */
-        for (; s + 1 < count; s += 2) {
-            const mkc_real *x0 = row_at(c, s, 0, buf);
-            const mkc_real *x1 = row_at(c, s + 1, 0, buf2);
-            mkc_real r0 = target(c, s, 0), r1 = target(c, s + 1, 0);
-            for (j = 0; j < n; j++) {
-                r0 -= x0[j] * th[j];
-                r1 -= x1[j] * th[j];
-            }
-            c->R[s][0] = r0;
-            c->R[s + 1][0] = r1;
-        }
-    }
-    for (; s < count; s++) {
-        for (i = 0; i < m; i++) {
-            const mkc_real *x = row_at(c, s, i, buf);
-            mkc_real r = target(c, s, i);
-            for (j = 0; j < n; j++)
-                r -= x[j] * th[j];
-            c->R[s][i] = r;
-        }
-    }
     for (i = 0; i < m; i++) {
         mkc_real amax = RC(0.0), ymax = RC(0.0), ai;
         mkc_ereal s_new, d_new, F;
         int its, st;
-        for (s = 0; s < count; s++) {
-            c->ebuf[s] = c->R[s][i] * c->R[s][i];        /* the objective needs the squares only */
-            amax = mkc__max_r(amax, MKC_FABS_R(c->R[s][i]));
-            ymax = mkc__max_r(ymax, MKC_FABS_R(target(c, s, i)));
+        s = 0;
+        if (m == 1) {
+            /* one channel: two rows per pass, two independent dot products sharing the loop */
+            for (; s + 1 < count; s += 2) {
+                const mkc_real *x0 = row_at(c, s, 0, buf);
+                const mkc_real *x1 = row_at(c, s + 1, 0, buf2);
+                mkc_real y0 = target(c, s, 0), y1 = target(c, s + 1, 0), r0 = y0, r1 = y1;
+                for (j = 0; j < n; j++) {
+                    r0 -= x0[j] * th[j];
+                    r1 -= x1[j] * th[j];
+                }
+                c->ebuf[s] = r0 * r0;                 /* the objective needs the squares only */
+                c->ebuf[s + 1] = r1 * r1;
+                amax = mkc__max_r(amax, MKC_FABS_R(r0));
+                ymax = mkc__max_r(ymax, MKC_FABS_R(y0));
+                amax = mkc__max_r(amax, MKC_FABS_R(r1));
+                ymax = mkc__max_r(ymax, MKC_FABS_R(y1));
+            }
+        }
+        for (; s < count; s++) {
+            const mkc_real *x = row_at(c, s, i, buf);
+            mkc_real y = target(c, s, i), r = y;
+            for (j = 0; j < n; j++)
+                r -= x[j] * th[j];
+            c->ebuf[s] = r * r;
+            amax = mkc__max_r(amax, MKC_FABS_R(r));
+            ymax = mkc__max_r(ymax, MKC_FABS_R(y));
         }
         ai = c->cfg.a > RC(0.0) ? c->cfg.a
                                               : mkc__max_r(c->cfg.a_factor * amax, RC(1e-12) * (RC(1.0) + ymax));
@@ -521,7 +552,7 @@ static int em_rounds(mkc_core_t *c, int rounds, int st)
         if (st != MKC_OK && st != MKC_NOT_CONVERGED)
             return st;
         mkc__estep_window(c);
-        st = rebuild_with(c, 1);
+        st = mkc__rebuild(c);
     }
     return st;
 }
@@ -611,7 +642,7 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
     if (c->counters.since >= c->cfg.estep_every) {
         c->counters.since = 0;
         mkc__estep_window(c);
-        st = rebuild_with(c, 1);
+        st = mkc__rebuild(c);
         if (st != MKC_OK && st != MKC_NOT_CONVERGED) {
             /* Recovery: restart Algorithm 3 on the window from WLS and the start bandwidth, so a
              * stream never stays stuck on a degenerate estimate (its weights would all be ~0). */
@@ -641,13 +672,26 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
     int i, n = cfg->n, m = cfg->m, W = cfg->window, K = cfg->estep_every, need, refactor;
     unsigned char *p = (unsigned char *)c;
     size_t k;
+    /* the real settings as the state holds them (mkc_real), checked after that rounding: in a float
+     * build a setting that rounds to 0 or inf is refused, and no double arithmetic is needed */
+    mkc_core_cfg r;
+    r.sigma_lo = (mkc_real)cfg->sigma_lo;
+    r.sigma_hi = (mkc_real)cfg->sigma_hi;
+    r.d_lo = (mkc_real)cfg->d_lo;
+    r.d_hi = (mkc_real)cfg->d_hi;
+    r.a_factor = (mkc_real)cfg->a_factor;
+    r.a = (mkc_real)cfg->a;
+    r.estep_gtol = (mkc_real)cfg->estep_gtol;
+    r.fp_tol = (mkc_real)cfg->fp_tol;
+    r.sigma_start = (mkc_real)cfg->sigma_start;
+    r.sigma_pull = (mkc_real)cfg->sigma_pull;
     if (n < 1 || m < 1 || n > MKC_N || m > MKC_M || W > MKC_W || W < (n > 2 ? n : 2) || K < 1 ||
         cfg->fp_rounds < 0 || cfg->estep_max_iter < 0 || cfg->refactor_every < 0 || cfg->min_samples < 0)
         return MKC_BAD_INPUT;
-    if (!(cfg->sigma_lo > 0.0 && cfg->sigma_lo < cfg->sigma_hi) || !(cfg->d_lo > 0.0 && cfg->d_lo < cfg->d_hi) ||
-        !(cfg->a_factor > 0.0) || !isfinite(cfg->a) || !(cfg->estep_gtol >= 0.0) || !(cfg->fp_tol >= 0.0) ||
-        !(cfg->sigma_start > 0.0) || !isfinite(cfg->sigma_hi) || !isfinite(cfg->d_hi) || !isfinite(cfg->sigma_start) ||
-        !(cfg->sigma_pull >= 0.0) || !isfinite(cfg->sigma_pull))
+    if (!(r.sigma_lo > RC(0.0) && r.sigma_lo < r.sigma_hi) || !(r.d_lo > RC(0.0) && r.d_lo < r.d_hi) ||
+        !(r.a_factor > RC(0.0)) || !isfinite(r.a) || !(r.estep_gtol >= RC(0.0)) || !(r.fp_tol >= RC(0.0)) ||
+        !(r.sigma_start > RC(0.0)) || !isfinite(r.sigma_hi) || !isfinite(r.d_hi) || !isfinite(r.sigma_start) ||
+        !(r.sigma_pull >= RC(0.0)) || !isfinite(r.sigma_pull))
         return MKC_BAD_INPUT;
     for (i = 0; i < m; i++) {
         if (sigma0 && !(sigma0[i] > RC(0.0) && isfinite(sigma0[i])))
@@ -682,16 +726,16 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
     c->cfg.estep_max_iter = cfg->estep_max_iter;
     c->cfg.min_samples = need;
     c->cfg.refactor_every = refactor;
-    c->cfg.sigma_lo = (mkc_real)cfg->sigma_lo;
-    c->cfg.sigma_hi = (mkc_real)cfg->sigma_hi;
-    c->cfg.d_lo = (mkc_real)cfg->d_lo;
-    c->cfg.d_hi = (mkc_real)cfg->d_hi;
-    c->cfg.a_factor = (mkc_real)cfg->a_factor;
-    c->cfg.a = (mkc_real)cfg->a;
-    c->cfg.estep_gtol = (mkc_real)cfg->estep_gtol;
-    c->cfg.fp_tol = (mkc_real)cfg->fp_tol;
-    c->cfg.sigma_start = (mkc_real)cfg->sigma_start;
-    c->cfg.sigma_pull = (mkc_real)cfg->sigma_pull;
+    c->cfg.sigma_lo = r.sigma_lo;
+    c->cfg.sigma_hi = r.sigma_hi;
+    c->cfg.d_lo = r.d_lo;
+    c->cfg.d_hi = r.d_hi;
+    c->cfg.a_factor = r.a_factor;
+    c->cfg.a = r.a;
+    c->cfg.estep_gtol = r.estep_gtol;
+    c->cfg.fp_tol = r.fp_tol;
+    c->cfg.sigma_start = r.sigma_start;
+    c->cfg.sigma_pull = r.sigma_pull;
     c->rows = rows;
     for (i = 0; i < m; i++) {
         c->sigma[i] = sigma0 ? sigma0[i] : RC(MKC_DEF_SIGMA0);

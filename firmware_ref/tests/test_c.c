@@ -308,6 +308,42 @@ static void test_configuration(void)
     CHECK(mkc_mag_init(&cal, &mc) == MKC_BAD_INPUT, "unknown policy");
 }
 
+/* The window's write order survives the 16-bit stamps running out: past 65,535 samples (the stamps
+ * renumbered at least once) a slot's stamp is smaller than another's exactly when it was written
+ * earlier (the reference's ages compare so). One E-step only (K beyond the stream), W = 32. */
+static void test_slot_order_past_stamp_range(void)
+{
+    mkc_mag_config cfg;
+    int64_t written_at[MKC_W];
+    long t, T = 70000;
+    int s, u, W = 32, wrong = 0, tracked = 0;
+    mkc_mag_config_default(&cfg);
+    cfg.stream.window = W;
+    cfg.stream.estep_every = 1000000;
+    CHECK(mkc_mag_init(&cal, &cfg) == MKC_OK, "mkc_mag_init");
+    for (s = 0; s < MKC_W; s++)
+        written_at[s] = -1;
+    for (t = 0; t < T; t++) {
+        double a = 0.37 * (double)t, b = 0.011 * (double)t;
+        int64_t seen = cal.core.counters.seen;
+        mkc_mag_push(&cal, (mkc_real)(50.0 * cos(a) * sin(b) + 5.0), (mkc_real)(50.0 * sin(a) * sin(b) - 3.0),
+                     (mkc_real)(50.0 * cos(b) + 1.0));
+        if (cal.core.counters.seen > seen)
+            written_at[cal.core.counters.last_slot] = (int64_t)t;
+    }
+    CHECK(cal.core.counters.seen > 65535 && cal.core.counters.count == W, "stream past the stamps' range (%ld seen)",
+          (long)cal.core.counters.seen);
+    for (s = 0; s < W; s++) {
+        tracked += written_at[s] >= 0;      /* (the first normalisation's samples enter together) */
+        for (u = 0; u < W; u++)
+            if (s != u && written_at[s] >= 0 && written_at[u] >= 0 &&
+                (written_at[s] < written_at[u]) != (cal.slot_stamp[s] < cal.slot_stamp[u]))
+                wrong++;
+    }
+    CHECK(tracked >= W / 2, "slots written after the first normalisation: %d", tracked);
+    CHECK(wrong == 0, "slot stamps in write order (%d pairs out of order)", wrong);
+}
+
 int main(void)
 {
     test_synthetic_calibration();
@@ -316,6 +352,7 @@ int main(void)
     test_degenerate_streams();
     test_generic_stream();
     test_configuration();
+    test_slot_order_past_stamp_range();
     printf("test_c (%s): %d checks, %d failures\n", sizeof(mkc_real) == 8 ? "double" : "float", checks, failures);
     return failures ? 1 : 0;
 }

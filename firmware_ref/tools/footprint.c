@@ -11,7 +11,7 @@ int main(int argc, char **argv)
     printf("%-11s n=%-2d m=%d W=%-5d  mkc_stream_t %7lu B", prec, MKC_N, MKC_M, MKC_W,
            (unsigned long)sizeof(mkc_stream_t));
     if (MKC_N == 9 && MKC_M == 1)       /* the magnetometer state is meant for n = 9, m = 1 */
-        printf("   mkc_mag_t %7lu B (%.2f KiB; its cold-start copy %lu B)", (unsigned long)sizeof(mkc_mag_t),
+        printf("   mkc_mag_t %7lu B (%.2f KiB; its cold-start copy, in the weights' bytes, %lu B)", (unsigned long)sizeof(mkc_mag_t),
                (double)sizeof(mkc_mag_t) / 1024.0, (unsigned long)MKC_CORE_SAVED_BYTES);
     printf("\n");
     return 0;

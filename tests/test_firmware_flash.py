@@ -1,0 +1,166 @@
+"""What the C port costs a firmware in flash, and the all-float build's freedom from software double.
+
+- The flash the library adds (tools/bench_firmware_target.py flash_added): text + data of the smallest
+  firmware using the calibrator (firmware_ref/target/footprint_main.c) minus the same firmware without
+  it (target/footprint_base_main.c), on the Cortex-M4F board. Checked: the difference is that, the
+  firmware without the library is small, and the all-float build links none of libgcc's software
+  double arithmetic (the double build does: the check can see it). Skipped, saying why, without
+  arm-none-eabi-gcc (Debian: gcc-arm-none-eabi, libnewlib-arm-none-eabi).
+- The all-float build stores reason values (mkc_mag_reason.v, double) by widening the float's bits
+  (src/mkc_internal.h mkc__reason_value): equal to C's (double) conversion for every class of float.
+- A float build checks its real settings as the state holds them, after rounding to float: a setting
+  that becomes inf or 0 in float is refused there, accepted by the double build.
+The host-compiler parts skip without a C compiler (CC).
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
+FW = REPO_ROOT / "firmware_ref"
+sys.path.insert(0, str(REPO_ROOT / "tools"))
+
+import bench_firmware_target as BT  # noqa: E402  (tools/bench_firmware_target.py)
+
+CC = os.environ.get("CC", "cc")
+STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion", "-Wconversion",
+          "-Wshadow", "-Wstrict-prototypes", "-ffp-contract=off", "-fno-fast-math", "-O2"]
+ALL_FLOAT = ["-DMKC_USE_FLOAT", "-DMKC_ACC_DOUBLE=0", "-DMKC_ESTEP_DOUBLE=0"]
+LIB_SRC = sorted(str(p) for p in (FW / "src").glob("*.c"))
+#: libgcc's software double arithmetic (add/sub, mul/div, compare); a conversion (truncdfsf2) may remain
+SOFT_DOUBLE_ARITHMETIC = ("_arm_addsubdf3.o", "_arm_muldivdf3.o", "_arm_cmpdf2.o", "_arm_unorddf2.o")
+
+needs_cc = pytest.mark.skipif(shutil.which(CC) is None, reason=f"no C compiler: `{CC}` is not on PATH (set CC)")
+
+
+def _compile_and_run(tmp_path: pathlib.Path, source: str, flags: list[str], sources=()) -> str:
+    src = tmp_path / "probe.c"
+    src.write_text(source)
+    exe = tmp_path / "probe"
+    cmd = [CC, *STRICT, *flags, f"-I{FW / 'include'}", f"-I{FW / 'src'}", "-o", str(exe), str(src), *sources, "-lm"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run = subprocess.run([str(exe)], capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout + run.stderr
+    return run.stdout
+
+
+WIDEN_PROBE = r"""
+#include <stdio.h>
+#include <string.h>
+#include "mkc_internal.h"
+
+static int check(uint32_t bits, long *checked)
+{
+    float f;
+    double want, got;
+    memcpy(&f, &bits, sizeof f);
+    want = (double)f;
+    got = mkc__reason_value(f);
+    *checked += 1;
+    if (f != f)                                   /* NaN: a NaN of the same sign (payloads may differ) */
+        return !(got != got) || !signbit(got) != !signbit(want);
+    return memcmp(&want, &got, sizeof want) != 0;
+}
+
+int main(void)
+{
+    long bad = 0, checked = 0;
+    uint32_t e, m, s;
+    static const uint32_t mantissas[] = {0u, 1u, 2u, 3u, 0x400000u, 0x7fffffu, 0x123457u, 0x7ffffeu, 0x000100u};
+    for (s = 0; s < 2; s++)
+        for (e = 0; e < 256; e++)
+            for (m = 0; m < sizeof mantissas / sizeof mantissas[0]; m++)
+                bad += check(s << 31 | e << 23 | mantissas[m], &checked);
+    for (m = 1; m < (1u << 23); m += 97)          /* subnormals, every normalising shift */
+        bad += check(m, &checked) + check(0x80000000u | m, &checked);
+    printf("%ld %ld\n", bad, checked);
+    return 0;
+}
+"""
+
+
+@needs_cc
+def test_reason_values_widen_exactly_in_the_all_float_build(tmp_path):
+    bad, checked = map(int, _compile_and_run(tmp_path, WIDEN_PROBE, ALL_FLOAT).split())
+    assert checked > 90_000
+    assert bad == 0
+
+
+CONFIG_PROBE = r"""
+#include <stdio.h>
+#include "mkc.h"
+
+static mkc_stream_t st;
+
+static int init_with(double sigma_lo, double sigma_hi)
+{
+    mkc_config cfg;
+    mkc_config_default(&cfg, 4, 1);
+    cfg.sigma_lo = sigma_lo;
+    cfg.sigma_hi = sigma_hi;
+    return mkc_stream_init(&st, &cfg, NULL, NULL, NULL);
+}
+
+int main(void)
+{
+    mkc_config cfg;
+    mkc_config_default(&cfg, 4, 1);
+    printf("%d %d %d\n", init_with(cfg.sigma_lo, cfg.sigma_hi), init_with(cfg.sigma_lo, 1e300),
+           init_with(1e-60, cfg.sigma_hi));
+    return 0;
+}
+"""
+
+
+@needs_cc
+@pytest.mark.parametrize("precision,expected", [("double", "0 0 0"), ("all-float", "0 4 4"), ("float", "0 4 4")])
+def test_settings_are_checked_in_the_precision_the_state_holds(tmp_path, precision, expected):
+    """sigma_hi = 1e300 is inf as a float and sigma_lo = 1e-60 is 0: a float build refuses both
+    (MKC_BAD_INPUT = 4); the double build takes them; the defaults pass everywhere (MKC_OK = 0)."""
+    flags = {"double": [], "float": ["-DMKC_USE_FLOAT"], "all-float": ALL_FLOAT}[precision]
+    out = _compile_and_run(tmp_path, CONFIG_PROBE, flags, LIB_SRC).split()
+    assert " ".join(out) == expected
+
+
+WHY = BT.missing_tools()
+
+
+@pytest.fixture(scope="module")
+def flash():
+    if WHY is not None:
+        pytest.skip(f"Cortex-M toolchain missing: {WHY}")
+    build_dir = FW / "build"
+    targets = tuple(f"build/qemu/an386_{kind}_{p}.elf" for p in ("double", "floatonly")
+                    for kind in ("footprint", "footprint_base"))
+    BT.build(None, targets)
+    return {p: BT.flash_added(build_dir, "an386", p) for p in ("double", "floatonly")}
+
+
+@pytest.mark.parametrize("precision", ["double", "floatonly"])
+def test_flash_added_is_the_firmware_with_the_library_minus_without(flash, precision):
+    f = flash[precision]
+    assert f["flash_added_bytes"] == f["flash_app_bytes"] - f["flash_base_bytes"]
+    assert 0 < f["flash_base_bytes"] < 2048                     # reset, vectors and a sensor loop
+    origin = f["added_by_origin"]
+    assert origin["library"] > 10_000 and origin["runtime"] > 1_000
+    # what the members add (text), with the initialised data, is the whole difference up to the
+    # alignment fill between input sections
+    assert 0 <= f["flash_added_bytes"] - (sum(origin.values()) + f["added_data_bytes"]) < 128
+    assert 0 < origin["program"] < 512                           # main's own calls
+
+
+def test_all_float_build_links_no_software_double_arithmetic(flash):
+    def soft(precision):
+        return [m for m in flash[precision]["added_by_member"] if m.startswith("libgcc.a(")
+                and m.split("(", 1)[1].rstrip(")") in SOFT_DOUBLE_ARITHMETIC]
+
+    assert soft("double")                                        # the check sees it where it is
+    assert soft("floatonly") == []
+    assert flash["floatonly"]["flash_added_bytes"] < flash["double"]["flash_added_bytes"]
