@@ -58,7 +58,7 @@ def test_the_counter_counts_instructions(replays, precision):
     cal = replays[(precision, 0)]["calibration"]
     assert cal["loop_instructions"] == 400_000
     assert abs(cal["counted_instructions"] - cal["loop_instructions"]) <= 0.01 * cal["loop_instructions"]
-    assert cal["systick_ticks"] == cal["counter_ticks"]
+    assert abs(cal["systick_ticks"] - cal["counter_ticks"]) <= 1     # each reading rounds to its tick
 
 
 def test_an_instruction_counting_plugin_agrees_with_the_counter(built, tmp_path):

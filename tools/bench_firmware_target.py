@@ -328,7 +328,9 @@ def measure(build_dir: pathlib.Path, board: str, precision: str, vector: str, sa
         run = run_measure(build_dir / "qemu" / f"{board}_measure_{precision}.elf", work, board, shift, plugin,
                           profile)
     cal = run["calibration"]
-    if cal["relative_error"] > CALIBRATION_TOLERANCE or cal["systick_ticks"] != cal["counter_ticks"]:
+    # the two counters time the same loop, each reading rounded to its own tick: one tick apart
+    # is their resolution (a code layout can put the readings either side of a tick boundary)
+    if cal["relative_error"] > CALIBRATION_TOLERANCE or abs(cal["systick_ticks"] - cal["counter_ticks"]) > 1:
         raise MeasureError(f"the instruction-count model does not hold: {cal}")
     if run["stack_overflow"]:
         raise MeasureError(f"{board} {precision}: the stack went below the painted {run['stack_painted_bytes']} bytes")
@@ -469,7 +471,7 @@ def main(argv=None) -> int:
     print(target_table(rows))
     print(f"\ncalibration: a loop of {r0['calibration']['loop_instructions']:,} instructions counted as "
           f"{r0['calibration']['counted_instructions']:,.0f} (FPGAIO counter; SysTick agrees: "
-          f"{r0['calibration']['systick_ticks'] == r0['calibration']['counter_ticks']})")
+          f"{abs(r0['calibration']['systick_ticks'] - r0['calibration']['counter_ticks']) <= 1})")
     for r in rows:
         pc = r["plugin_check"]
         if pc:
