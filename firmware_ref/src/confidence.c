@@ -9,15 +9,7 @@
 
 
 /* m = S (raw_k - b); returns |m| (relative_residuals' y row and its norm) */
-static mkc_real calibrated(const mkc_mag_t *g, int k, const mkc_mag_calibration *c, mkc_real *m)
-{
-    mkc_real v0 = g->raw[k][0] - c->hard_iron[0], v1 = g->raw[k][1] - c->hard_iron[1];
-    mkc_real v2 = g->raw[k][2] - c->hard_iron[2];
-    int i;
-    for (i = 0; i < 3; i++)
-        m[i] = v0 * c->soft_iron[i][0] + v1 * c->soft_iron[i][1] + v2 * c->soft_iron[i][2];
-    return MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
-}
+#define calibrated(g, k, c, m) mkc__calibrated_norm((g), (k), (c)->hard_iron, (c)->soft_iron, (m))
 
 /* supports_switch: 1 when the window supports replacing `acc` by `trial`, 2 when it does so strongly
  * (gain > Z_RESTART se, the pooled calibrator's restart test), 0 otherwise; i.e. gain > z se with

@@ -21,18 +21,6 @@ static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
     return MKC_SQRT_R(mkc__pairwise_sum(work, n) / (mkc_real)n);
 }
 
-/* |m_cal| of window row k, m_cal = S (raw_k - b); m (may be NULL): m_cal. */
-static mkc_real calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3], mkc_real *m)
-{
-    mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2], mm[3];
-    int i;
-    if (!m)
-        m = mm;
-    for (i = 0; i < 3; i++)
-        m[i] = v0 * S[i][0] + v1 * S[i][1] + v2 * S[i][2];
-    return MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
-}
-
 void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
                           mkc_real condition, mkc_real *q)
 {
@@ -43,11 +31,11 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
         hit[k] = 0;
     /* m_cal = (raw - b) S^T; cells of m_cal / |m_cal|; r = |m_cal| - F (RES) */
     for (k = 0; k < count; k++) {
-        mkc_real m[3], nk = calibrated_norm(g, k, b, S, m);
+        mkc_real m[3], nk = mkc__calibrated_norm(g, k, b, S, m);
         if (nk > RC(0.0))
             hit[mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)] = 1;
     }
-#define RES(k) (calibrated_norm(g, (k), b, S, NULL) - F)
+#define RES(k) (mkc__calibrated_norm(g, (k), b, S, NULL) - F)
     /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD (stats.c mkc__mad_about_median's steps) */
     for (k = 0; k < count; k++)
         w[k] = RES(k);
@@ -75,12 +63,12 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
     q[MKC_Q_RESIDUAL_RMS_ALL] = MKC_SQRT_R(mkc__pairwise_sum(w, count) / (mkc_real)count);
     /* np.std of the norms, then of the inliers' norms (compacted), each in w (np_std works in place) */
     for (k = 0; k < count; k++)
-        w[k] = calibrated_norm(g, k, b, S, NULL);
+        w[k] = mkc__calibrated_norm(g, k, b, S, NULL);
     q[MKC_Q_NORM_SPREAD] = np_std(w, count, w) / F;
     {
         int j = 0;
         for (k = 0; k < count; k++) {
-            mkc_real nk = calibrated_norm(g, k, b, S, NULL);
+            mkc_real nk = mkc__calibrated_norm(g, k, b, S, NULL);
             if (!IS_OUT(nk - F))
                 w[j++] = nk;
         }
