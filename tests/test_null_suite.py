@@ -124,7 +124,8 @@ def _row(family, verdict, on_testable=None, selected=(), seconds=1.0):
             "verdict_on_testable": on_testable or verdict, "baseline_accepted": verdict != "baseline_rejected",
             "false_alarm": (on_testable or verdict) != "no_gap", "gap_before": 1.0, "gap_after": 1.0, "alarm": 1.2,
             "detected_by": None if verdict == "no_gap" else "gap index", "matched_fired": [],
-            "selected": list(selected), "ambiguous_with": [], "where": [], "decimation": 1}
+            "selected": list(selected), "ambiguous_with": [], "where": [], "decimation": 1,
+            "rejected_for": "coverage" if verdict == "baseline_rejected" else None}
 
 
 def test_summary_counts_false_alarms_and_rejections():
@@ -134,11 +135,13 @@ def test_summary_counts_false_alarms_and_rejections():
     s = null_suite.summarise(rows)
     assert s["a"]["recordings"] == 3 and s["a"]["false_alarms"] == 1 and s["a"]["baseline_rejected"] == 1
     assert s["a"]["claimed_effects"] == {"latency": 1}
+    assert s["a"]["rejected_for"] == {"coverage": 1}
     assert s["a"]["seconds_median"] == 4.0 and s["a"]["seconds_max"] == 9.0
     assert s["b"]["errors"] == 1 and s["b"]["false_alarm_rate"] is None
     md = null_suite.markdown(s, rows)
     assert "| a | 1000 | 3 | 1 | 33% | 1 | latency x1 | 4.0 | 9.0 |" in md
     assert "short: not diagnosed: too short" in md
+    assert "- a: coverage x1" in md                 # why the baselines were rejected, by family
 
 
 def test_suite_on_two_tiny_recordings(tmp_path):

@@ -22,6 +22,11 @@ Families (null: nothing the diagnosis lists as an effect):
   plus temperature and flight-power aux columns (``--temp cycle --power``), 10^4 samples.
 * ``hand-1e3``, ``hand-1e5``: the same for hand at 10^3 and 10^5 samples (the diagnosis
   decimates 10^5 to 2 x 10^4 in its fast profile).
+* ``ground``, ``static``: the same along a ground vehicle's trajectory (turns about the vertical
+  only: a circle of directions) and at rest in one attitude (one direction), 10^4 samples;
+  ``ground-1e3``, ``ground-1e5`` at 10^3 and 10^5 samples. Neither determines an ellipsoid:
+  every baseline should be rejected, and what is counted is the verdict on what could still be
+  tested (not part of the default run).
 * ``sweep``: mkc_stream.sim.presets.sweep (the synthetic calibration stream: no accelerometer,
   disturbance bursts, which the baseline models), 10^4 samples.
 * ``hand-noisy`` (white noise 0.6 uT, 1.2% of the field), ``hand-aniso`` (0.1, 0.05, 0.1 uT per
@@ -59,6 +64,10 @@ FAMILIES = {
     "flight": ("flight", 10_000),
     "hand-1e3": ("hand", 1_000),
     "hand-1e5": ("hand", 100_000),
+    "ground": ("ground", 10_000),
+    "static": ("static", 10_000),
+    "ground-1e3": ("ground", 1_000),
+    "ground-1e5": ("ground", 100_000),
     "sweep": ("sweep", 10_000),
     "real": ("real", None),
     "hand-noisy": ("hand", 10_000),
@@ -149,12 +158,17 @@ def run_one(job):
         return {**row, "error": f"not diagnosed: {exc}", "seconds": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
     scope = d.info.get("scope", {}) or {}
-    accepted = bool(d.info["baseline"]["calibration"]["accepted"])
+    calibration = d.info["baseline"]["calibration"]
+    accepted = bool(calibration["accepted"])
+    rejection = calibration.get("rejection") or {}
     on_testable = scope.get("verdict_on_testable") or d.verdict
     counted = d.verdict if accepted else on_testable
     mt = d.info.get("matched_tests", {})
     return {**row, "seconds": seconds, "verdict": d.verdict, "verdict_on_testable": on_testable,
             "baseline_accepted": accepted, "false_alarm": counted != NULL_VERDICT,
+            # the calibrator's failed checks (calib.acceptance.CHECKS) or its code, when rejected
+            "rejected_for": None if accepted else "+".join(rejection.get("failed") or [rejection.get("code", "?")]),
+            "rejection_reason": None if accepted else calibration.get("reason"),
             "gap_before": _num(d.gap_before), "gap_after": _num(d.gap_after), "alarm": _num(d.threshold),
             "detected_by": d.info.get("detected_by"), "matched_fired": list(mt.get("fired", [])),
             "selected": list(d.selected), "ambiguous_with": list(d.ambiguous_with),
@@ -179,6 +193,7 @@ def summarise(rows):
             "recordings": len(rs), "diagnosed": len(ok), "errors": len(rs) - len(ok),
             "false_alarms": len(fa), "false_alarm_rate": len(fa) / len(ok) if ok else None,
             "baseline_rejected": sum(not r["baseline_accepted"] for r in ok),
+            "rejected_for": dict(Counter(r["rejected_for"] for r in ok if r.get("rejected_for"))),
             "verdicts": dict(Counter(r["verdict"] for r in ok)),
             "detected_by": dict(Counter(r["detected_by"] for r in fa)),
             "claimed_effects": dict(claimed),
@@ -202,6 +217,10 @@ def markdown(summary, rows) -> str:
         err = f" ({s['errors']} not diagnosed)" if s["errors"] else ""
         lines.append(f"| {fam} | {n} | {s['diagnosed']}{err} | {s['false_alarms']} | {rate} | "
                      f"{s['baseline_rejected']} | {claimed} | {sec} | {smax} |")
+    rejected = {fam: s["rejected_for"] for fam, s in summary.items() if s.get("rejected_for")}
+    if rejected:
+        lines += ["", "Baselines rejected, by the calibrator's failed checks:", ""]
+        lines += [f"- {fam}: " + ", ".join(f"{k} x{v}" for k, v in why.items()) for fam, why in rejected.items()]
     alarms = [r for r in rows if r.get("false_alarm") or "error" in r]
     if alarms:
         lines += ["", "Alarms and errors (gap index before -> after, alarm level):", ""]

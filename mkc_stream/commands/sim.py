@@ -6,7 +6,9 @@ import sys
 from .common import (EXIT_OK, EXIT_REJECTED, Outputs, UsageError, add_json_option, add_quiet_option, load_recording,
                      write_json)
 
-TRAJECTORIES = ("hand", "figure8", "flight")
+#: the generated trajectory kinds (mkc_stream.sim.trajectory.MOTIONS, spelled out here so the CLI
+#: starts without importing the simulator)
+TRAJECTORIES = ("hand", "figure8", "flight", "ground", "static")
 
 
 #: simulate refuses more samples than this (duration x rate): simulating takes ~2 KB of memory
@@ -32,7 +34,9 @@ def register(subparsers):
 
     s = subparsers.add_parser("simulate", help="simulate a magnetometer/IMU recording with effects")
     s.add_argument("--trajectory", default="hand",
-                   help="hand, figure8, flight, or recording:PATH to replay a recording's times, directions and aux")
+                   help="hand (tumbling, the whole sphere), figure8, flight (banked turns), ground (a vehicle "
+                        "turning about the vertical), static (at rest in one attitude), or recording:PATH to "
+                        "replay a recording's times, directions and aux")
     s.add_argument("--duration", type=positive_float, default=200.0, help="seconds (generated trajectories)")
     s.add_argument("--rate", type=positive_float, default=50.0, help="samples per second (generated trajectories)")
     s.add_argument("--temp", default="cycle", choices=("cycle", "ramp", "const", "none"), help="temperature profile")

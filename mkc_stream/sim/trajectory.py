@@ -2,7 +2,8 @@
 
 A trajectory gives the true field direction in the sensor frame (unit vectors), the
 accelerometer's specific force and the gyroscope's rate (sensor frame), and aux signals. It is
-either generated (hand-waving rotations, a figure-8, flight-like segments) or taken from a real
+either generated (hand-waving rotations, a figure-8, flight-like segments, a ground vehicle that
+only turns about the vertical, a sensor at rest) or taken from a real
 recording: its timestamps, the directions implied by its calibrated data, its accelerometer
 (which, with the field, fixes the attitude) and its aux columns.
 
@@ -19,6 +20,17 @@ from scipy.spatial.transform import Rotation
 from . import profiles
 
 G = 9.80665
+#: the generated motion kinds (_attitude)
+MOTIONS = (
+    "hand",       # tumbling: OU yaw and roll rates 1.2 rad/s RMS, pitch sweeps +-83 deg; the whole sphere
+    "figure8",    # figure-8s of ~12 s (pitch +-75 deg) while yaw and roll turn round; the whole sphere
+    "flight",     # banked turns: OU yaw rate 0.15 rad/s RMS, bank for 12 m/s, pitch +-5 deg; a band
+    "ground",     # car/robot: OU yaw rate 0.1 rad/s + a 360 deg turn each 28-70 s, roll/pitch 2 deg RMS
+    "static",     # at rest in one random attitude, vibration 0.002 rad RMS per angle (0.1 s); one direction
+)
+STATIC_JITTER_RAD = 0.002     # rad RMS per attitude angle: the vibration of a sensor at rest
+STATIC_JITTER_TAU_S = 0.1     # s, its correlation time
+GROUND_SPEED = 1.5            # m/s: the ground vehicle's nominal speed, for its centripetal acceleration
 
 
 @dataclass
@@ -58,6 +70,24 @@ def _integrate(t, rate):
     return np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
 
 
+def _full_turns(rng, t: np.ndarray) -> np.ndarray:
+    """Yaw rate (rad/s) of a vehicle's full turns: each turns 2 pi, left or right, at a mean rate
+    wm of 0.25-0.5 rad/s with the raised-cosine profile w(s) = wm (1 - cos(2 pi s / d)),
+    d = 2 pi / wm (so its integral over the turn is 2 pi). The first starts within 40 s, each
+    next one 15-45 s after the previous one ends: every 100 s holds at least one whole turn."""
+    rate = np.zeros_like(t)
+    start = t[0] + rng.uniform(0.0, 40.0)
+    while start < t[-1]:
+        wm = rng.uniform(0.25, 0.5)
+        d = 2 * np.pi / wm
+        sign = 1.0 if rng.uniform() < 0.5 else -1.0
+        s = t - start
+        on = (s >= 0.0) & (s < d)
+        rate[on] += sign * wm * (1.0 - np.cos(2 * np.pi * s[on] / d))
+        start += d + rng.uniform(15.0, 45.0)
+    return rate
+
+
 def _attitude(kind: str, t: np.ndarray, rng) -> Rotation:
     """Sensor-to-world attitude for a motion kind, as intrinsic yaw-pitch-roll angles."""
     T = t[-1] - t[0]
@@ -78,8 +108,19 @@ def _attitude(kind: str, t: np.ndarray, rng) -> Rotation:
         yaw = _integrate(t, turn) + rng.uniform(0, 6.3)
         roll = np.arctan(12.0 * turn / G) + _ou(rng, t, 1.0, 0.03)   # coordinated bank at 12 m/s
         pitch = 0.08 * np.sin(2 * np.pi * (t - t[0]) / 40.0) + _ou(rng, t, 1.0, 0.03)
+    elif kind == "ground":
+        # heading wanders (OU yaw rate, 4 s) plus full turns; terrain tilts roll and pitch (OU, 5 s)
+        yaw = _integrate(t, _ou(rng, t, 4.0, 0.1) + _full_turns(rng, t)) + rng.uniform(0, 2 * np.pi)
+        pitch = _ou(rng, t, 5.0, np.radians(2.0))
+        roll = _ou(rng, t, 5.0, np.radians(2.0))
+    elif kind == "static":
+        # one attitude, uniform over rotations (pitch = arcsin U(-1, 1): the ZYX angles' Haar density
+        # is proportional to cos(pitch)), plus the vibration on each angle
+        yaw = rng.uniform(-np.pi, np.pi) + _ou(rng, t, STATIC_JITTER_TAU_S, STATIC_JITTER_RAD)
+        pitch = np.arcsin(rng.uniform(-1.0, 1.0)) + _ou(rng, t, STATIC_JITTER_TAU_S, STATIC_JITTER_RAD)
+        roll = rng.uniform(-np.pi, np.pi) + _ou(rng, t, STATIC_JITTER_TAU_S, STATIC_JITTER_RAD)
     else:
-        raise ValueError(f"unknown motion {kind!r}; use hand, figure8 or flight")
+        raise ValueError(f"unknown motion {kind!r}; use {', '.join(MOTIONS)}")
     return Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1))
 
 
@@ -91,14 +132,36 @@ def _body_rates(t: np.ndarray, R: Rotation) -> np.ndarray:
     return out
 
 
+def _linear_acc(motion: str, t: np.ndarray, R: Rotation, rng, rms: float) -> np.ndarray:
+    """Linear acceleration (N, 3), world frame, m/s^2; ``rms`` is generate's linear_acc."""
+    if motion == "ground":
+        # along the heading: throttle and brakes (OU, RMS rms, 2 s); sideways: the centripetal
+        # a = v dpsi/dt at GROUND_SPEED; vertical: terrain bumps (OU, RMS rms / 3, 0.2 s)
+        yaw = np.unwrap(R.as_euler("ZYX")[:, 0])
+        ahead = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1)
+        left = np.stack([-np.sin(yaw), np.cos(yaw), np.zeros_like(yaw)], axis=1)
+        forward = _ou(rng, t, 2.0, rms)
+        sideways = GROUND_SPEED * np.gradient(yaw, t)
+        up = _ou(rng, t, 0.2, rms / 3.0)
+        return forward[:, None] * ahead + sideways[:, None] * left + up[:, None] * np.array([0.0, 0.0, 1.0])
+    if motion == "static":
+        # at rest: only the vibration's, RMS rms / 10 per axis (OU, STATIC_JITTER_TAU_S)
+        return np.stack([_ou(rng, t, STATIC_JITTER_TAU_S, rms / 10.0) for _ in range(3)], axis=1)
+    return np.stack([_ou(rng, t, 0.5, rms) for _ in range(3)], axis=1)
+
+
 def generate(motion="hand", duration=200.0, rate=50.0, seed=0, temp="cycle", power=False,
              other_loads=True, inclination=60.0, linear_acc=0.3, temp_amplitude=8.0, temp_cycles=3.0):
     """A generated trajectory.
 
     motion: "hand" (hand-waving tumbling that covers the sphere), "figure8", "flight" (banked
-    turns; covers little of the sphere). temp: "cycle", "ramp", "const" or None (no temp column).
-    power: add flight-like throttle, current and voltage columns (other_loads=False makes
-    current a function of throttle alone). linear_acc: RMS of the linear acceleration, m/s^2.
+    turns; covers little of the sphere), "ground" (a vehicle turning about the vertical: every
+    heading, roll and pitch within a few degrees; a circle of directions, not a sphere) or
+    "static" (at rest in one random attitude: one direction). temp: "cycle", "ramp", "const"
+    or None (no temp column). power: add flight-like throttle, current and voltage columns
+    (other_loads=False makes current a function of throttle alone). linear_acc: RMS of the
+    linear acceleration per axis, m/s^2 (ground: along the heading, plus the turns' centripetal
+    and a third of it vertically; static: a tenth of it, the vibration's).
     """
     rng = np.random.default_rng(seed)
     n = int(round(duration * rate))
@@ -107,7 +170,7 @@ def generate(motion="hand", duration=200.0, rate=50.0, seed=0, temp="cycle", pow
     t = np.arange(n) / float(rate)
     R = _attitude(motion, t, rng)
     h = world_field(inclination)
-    lin = np.stack([_ou(rng, t, 0.5, linear_acc) for _ in range(3)], axis=1)
+    lin = _linear_acc(motion, t, R, rng, linear_acc)
     acc = R.inv().apply(lin + np.array([0.0, 0.0, G]))
     aux = {}
     if temp is not None:
