@@ -362,3 +362,14 @@ def test_every_mean_form_is_scaled_above_the_solvers_ridge(clean):
         assert np.diag(A)[-form.k:].min() > 100.0 * ridge, name
         checked.append(name)
     assert len(checked) >= 12 and "latency" in checked
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--lat", "10"], "--lat and --lon go together"),
+    (["--lat", "95", "--lon", "3"], "must be <= 90"),
+    (["--date", "2024-13-45"], "--date: date must be a decimal year or an ISO date"),
+])
+def test_diagnose_refuses_a_bad_field_reference(args, message, capsys):
+    """The attitude-aided part's field reference is checked before any work (exit 2, the reason)."""
+    assert main(["diagnose", "demo", *args]) == 2
+    assert message in capsys.readouterr().err

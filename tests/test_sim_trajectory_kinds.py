@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mkc_stream.commands.sim import TRAJECTORIES
-from mkc_stream.diagnose import diagnose
+from mkc_stream.diagnose import diagnose, report
 from mkc_stream.diagnose.scope import CALIBRATION_FREE_EFFECTS
 from mkc_stream.sim import SensorModel, generate, simulate
 from mkc_stream.sim.trajectory import MOTIONS, _attitude
@@ -106,6 +106,9 @@ def test_ground_diagnosis_rejects_the_baseline_for_coverage():
     rejection = d.info["baseline"]["calibration"]["rejection"]
     assert "coverage" in rejection["failed"]
     assert "sphere coverage" in d.info["scope"]["calibration_reason"]
+    # the report marks the rejected fit's field and noise as that fit's, not as measurements
+    baseline_line = next(x for x in report.text(d).splitlines() if x.lstrip().startswith("baseline"))
+    assert "(the rejected fit; not measurements)" in baseline_line
 
 
 def test_static_diagnosis_rejects_the_baseline_and_claims_nothing():

@@ -29,8 +29,8 @@ NONNEGATIVE_PARAMS = {"tau", "sigma", "spread", "width", "q", "kurtosis", "lsb",
 
 
 def register(subparsers):
-    from .argtypes import (fraction, input_file, int_range, nonneg_float, nonneg_int, positive_float, vector3,
-                           writable_dir, writable_path)
+    from .argtypes import (float_range, fraction, input_file, int_range, nonneg_float, nonneg_int, positive_float,
+                           vector3, writable_dir, writable_path)
 
     s = subparsers.add_parser("simulate", help="simulate a magnetometer/IMU recording with effects")
     s.add_argument("--trajectory", default="hand",
@@ -66,6 +66,13 @@ def register(subparsers):
                    help="fast: <= 60 s for 10^4 samples; full: more replicas and bootstraps, all samples (slower)")
     d.add_argument("--replicas", type=int_range(2, 1000), help="replicas per model, 2..1000 (default: by profile)")
     d.add_argument("--seed", type=nonneg_int, default=0)
+    g = d.add_argument_group("attitude-aided part (recordings with qw, qx, qy, qz)")
+    g.add_argument("--no-attitude", dest="attitude", action="store_false",
+                   help="skip the vector baseline from the recording's attitude")
+    g.add_argument("--lat", type=float_range(-90.0, 90.0), help="latitude (deg) for the Earth-field model when the "
+                   "recording has no GPS position (else a unit field with the inclination estimated)")
+    g.add_argument("--lon", type=float_range(-180.0, 360.0), help="longitude (deg)")
+    g.add_argument("--date", help="date for the Earth-field model (YYYY-MM-DD or a decimal year), default the recording's")
     add_quiet_option(d)
     d.add_argument("--verbose", action="store_true", help="print progress")
     d.set_defaults(func=cmd_diagnose)
@@ -165,12 +172,21 @@ def cmd_diagnose(args) -> int:
     from ..diagnose import DiagnoseError, diagnose
     from ..diagnose import report
 
+    if (args.lat is None) != (args.lon is None):
+        raise UsageError("--lat and --lon go together")
+    if args.date is not None:
+        from ..flight.earthfield import decimal_year
+
+        try:
+            decimal_year(args.date)
+        except ValueError as exc:           # MKCInputError is a ValueError
+            raise UsageError(f"--date: {exc}") from exc
     rec = load_recording(args.recording)
     out = sys.stderr if args.json == "-" else sys.stdout
     log = (lambda s: print(s, file=sys.stderr)) if args.verbose else None
     try:
         diag = diagnose(rec, exclude=args.exclude, profile=args.profile, replicas=args.replicas, seed=args.seed,
-                        log=log)
+                        log=log, attitude=args.attitude, lat=args.lat, lon=args.lon, date=args.date)
     except (DiagnoseError, ValueError) as exc:
         raise UsageError(f"{args.recording}: {_diagnose_reason(exc)}{_bad_rows_note(rec)}") from exc
     if rec.bad_rows:

@@ -15,7 +15,10 @@ calibration, the verdict is "baseline_rejected", with the calibrator's reason, a
 not rest on the calibration is tested (:mod:`.scope`; its verdict is ``info.scope``'s
 ``verdict_on_testable``). The verdict is decided from figures returned beside it
 (:mod:`.verdict`: "explained" only with the held-out gap index at or below its alarm level), and
-the effects that were not tested are listed with the reason (``dropped``). ``Diagnosis.to_json()`` is the
+the effects that were not tested are listed with the reason (``dropped``). A recording with the attitude
+(aux qw, qx, qy, qz) also gets the attitude-aided part (:mod:`.attitude`): a vector baseline against the
+Earth field and the effects of its logged aux signals tested on its three-channel residual, beside the
+verdict (``attitude_aided``; the verdict itself reads the ellipsoid baseline). ``Diagnosis.to_json()`` is the
 object of docs/spec/machine-output.md; :mod:`.report` writes the human report and plots.
 """
 from __future__ import annotations
@@ -52,6 +55,7 @@ class Diagnosis:
     info: dict = field(default_factory=dict)
     basis: object = None                 # .verdict.Basis: the figures the verdict was decided from
     dropped: list = field(default_factory=list)   # [{"name", "reason"}]: effects not tested, and why
+    attitude: object = None              # .attitude.AttitudeDiagnosis, None when not asked for
     engine: object = field(default=None, repr=False)
     evaluations: dict = field(default_factory=dict, repr=False)
 
@@ -78,6 +82,7 @@ class Diagnosis:
             "excluded": self.excluded,
             "dropped": self.dropped,
             "info": jsonable(self.info),
+            "attitude_aided": None if self.attitude is None else self.attitude.to_json(),
         }
 
 
@@ -98,12 +103,15 @@ def _where(eng, ev, n=15):
 
 
 def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, max_samples="profile",
-             log=None) -> Diagnosis:
+             log=None, attitude=True, earth=None, lat=None, lon=None, date=None) -> Diagnosis:
     """Diagnose the sim-to-real gap of a recording (see the module documentation).
 
     exclude: effect names to leave out of the library (the blind benchmark's "removed" trials);
     an effect whose form holds one of them as a special case (``MeanForm.contains``) goes too.
     profile: "fast" (the 60 s budget for 10^4 samples) or "full". log: a callable for progress lines.
+    attitude: run the attitude-aided part (:mod:`.attitude`; skipped with the reason without an attitude);
+    earth (an NED field in uT or a flight.EarthField), lat/lon (deg), date: its field reference when the log
+    has no GPS position (else a unit field with the inclination estimated).
     Raises DiagnoseError for recordings that cannot be diagnosed, with the reason.
     """
     from ..sim.effects import EFFECTS
@@ -139,6 +147,11 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
         f"{frame.n} samples{'' if frame.decimation == 1 else f' (decimated by {frame.decimation})'}")
     if not scope.accepted:
         log(f"the calibrator rejects the baseline calibration ({scope.reason}): testing only {scope.tested()}")
+    att_diag = None
+    if attitude:
+        from .attitude import diagnose_attitude
+
+        att_diag = diagnose_attitude(recording, frame, earth=earth, lat=lat, lon=lon, date=date, log=log)
     ev0 = eng.evaluate(Candidate(), keep_raw=True)
     thr0 = gap.threshold(eng.calibrate(ev0))
     by_gap = bool(ev0.G > thr0)
@@ -230,5 +243,5 @@ def diagnose(recording, *, exclude=(), profile="fast", replicas=None, seed=0, ma
     return Diagnosis(verdict=v, gap_before=ev0.G, gap_after=final.G if selected else ev0.G,
                      threshold=thr0, shrink=s, where=_where(eng, ev0),
                      effects=ordered, ambiguous_with=ambiguous, selected=selected, excluded=sorted(exclude),
-                     info=info, basis=basis, dropped=dropped, engine=eng,
+                     info=info, basis=basis, dropped=dropped, attitude=att_diag, engine=eng,
                      evaluations={"baseline": ev0, "final": final})

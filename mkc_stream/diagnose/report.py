@@ -1,5 +1,10 @@
 """The diagnosis for people: a headline, the largest gaps, the attribution table, and plots.
 
+A recording with the attitude also gets a few lines for the attitude-aided part (.attitude): the vector
+baseline's field, residual RMS per axis and rows used/skipped, then each effect tested on its residual
+with p, the held-out RMS before/after and the share of variance explained, and its size per axis with
+the 95% interval (units stated).
+
 ``text(diag)`` is the report printed by ``mkc-stream diagnose``; ``write(diag, directory)``
 saves it as ``report.md`` beside PNG plots (needs matplotlib, the ``plot`` extra):
 residual against time with the replicas' 5-95% band, the sphere map of the mean residual,
@@ -53,6 +58,66 @@ def _grouped(pairs):
     return list(out.items())
 
 
+def _vec(v, nd=3) -> str:
+    return "(" + ", ".join(_fmt(x, nd) for x in v) + ")"
+
+
+def _field_text(f) -> str:
+    if f.get("model") == "unit field":
+        return f"a unit field, inclination {f['inclination_deg']:.1f} deg estimated (no position; residual not in uT)"
+    if f.get("intensity") is not None and f.get("inclination_deg") is not None:
+        return (f"{f.get('model')} {f['intensity']:.2f} uT, inclination {f['inclination_deg']:.1f} deg "
+                f"({f.get('source')})")
+    return f"{f.get('model')} ({f.get('source')})"
+
+
+def attitude_lines(att) -> list:
+    """The attitude-aided part (.attitude): its baseline, then each effect tested with its figures."""
+    if att is None:
+        return []
+    if not att["ran"]:
+        b = att.get("baseline") or {}
+        used = (f" ({b['samples']} rows with attitude, {b['skipped']} skipped)" if "samples" in b else "")
+        return [f"  attitude-aided: not run: {att['reason']}{used}"]
+    b = att["baseline"]
+    u = b["unit"] if b["field"].get("model") != "unit field" else f"{b['unit']} (unit-field scale)"
+    L = [f"  attitude-aided: vector baseline m = A R(q)^T h + b against {_field_text(b['field'])}",
+         f"                  residual RMS {_vec(b['residual_rms'])} {u} (x, y, z; robust sd "
+         f"{_vec(b['residual_robust_sd'])}), {b['samples']} rows used, {b['skipped']} skipped"
+         + (f" ({b['skipped_reason']})" if b.get("skipped") else "")]
+    if b.get("held"):
+        L.append(f"                  held at their prior: {', '.join(b['held'])}")
+    found = att["found"]
+    L.append(f"                  found (p < {att['level']:g} and a lower held-out residual): "
+             + (", ".join(found) if found else "none"))
+    for e in att["effects"]:
+        if not e["testable"]:
+            L.append(f"    {e['name']:20s} not testable: {e['reason']}")
+            continue
+        h, sz = e["held_out"], e["size"]
+        L.append(f"    {e['name']:20s} {'FOUND' if e['found'] else 'not found':9s} p {_fmt(e['p_value'], 2)} (shift test); "
+                 f"held-out RMS "
+                 f"{_vec(h['rms_before'])} -> {_vec(h['rms_after'])} {h['unit']}, "
+                 f"{h['variance_explained']:.1%} of its variance explained")
+        ci = ", ".join(f"{_fmt(v)} [{_fmt(lo)}, {_fmt(hi)}]" for v, (lo, hi) in zip(sz["value"], sz["ci95"]))
+        extra = ""
+        if "delay_s" in e:
+            extra = "; delay " + (e.get("delay_note") or "not determined" if e["delay_s"] is None
+                                  else f"{e['delay_s'] * 1e3:.0f} ms")
+        if "lag_s" in e:
+            extra = f"; thermal lag {e['lag_s']:g} s"
+        L.append(f"    {'':20s} size {ci} {sz['unit']} (x, y, z; 95%){extra}")
+        if e["name"] in att.get("ambiguous_with", {}):
+            gain = e["held_out"].get("adds_given_others")
+            L.append(f"    {'':20s} adds {_fmt(None if gain is None else 100 * gain, 2)}% of the held-out variance given "
+                     f"{', '.join(att['ambiguous_with'][e['name']])}: the data cannot tell them apart")
+        if sz.get("note"):
+            L.append(f"    {'':20s} note: {sz['note']}")
+    for note in b.get("notes") or ():
+        L.append(f"    note: {note}")
+    return L
+
+
 def headline(diag) -> str:
     effects = " + ".join(diag.selected) or "-"
     scope = diag.info.get("scope") or {}
@@ -72,18 +137,28 @@ def text(diag, source="") -> str:
         L.append(f"  because       : {basis.rule}")
         for note in basis.notes:
             L.append(f"                  then {note}")
+    att = getattr(diag, "attitude", None)
+    att = None if att is None else att.to_json()
+    if att is not None and att["ran"]:
+        L.append("  with attitude : the attitude-aided vector residual was tested too (below): "
+                 + (f"found {', '.join(att['found'])}" if att["found"] else "no effect found"))
     dec = f", decimated by {info['decimation']}" if info.get("decimation", 1) > 1 else ""
     L.append(f"  recording     : {info['samples']} samples over {info['duration_s']:.1f} s{dec}; "
              f"aux used: {', '.join(info['aux_used']) or 'none'}")
     b = info["baseline"]
-    L.append(f"  baseline      : field {b['field']:.4g} {info['unit']}, white noise {b['noise']:.3g} {info['unit']}, "
+    cal = b.get("calibration") or {}
+    # a rejected calibration's field, noise and bursts are read from the fit the calibrator refuses:
+    # figures of that fit, not measurements of the sensor
+    rejected = bool(cal) and not cal["accepted"]
+    L.append(f"  baseline      : {'(the rejected fit; not measurements) ' if rejected else ''}"
+             f"field {b['field']:.4g} {info['unit']}, white noise {b['noise']:.3g} {info['unit']}, "
              f"bursts {b['burst_fraction']:.1%}"
              + _inclination_text(b))
-    cal = b.get("calibration") or {}
     if cal:
         cov = (cal.get("quality") or {}).get("coverage")
         L.append("  calibration   : " + (f"accepted by the calibrator (sphere coverage {cov:.0%})" if cal["accepted"]
                                         else f"REJECTED by the calibrator: {cal['reason']}"))
+    L += attitude_lines(att)
     L.append(f"  gap index     : {_fmt(diag.gap_before)} (held-out; no-gap level 1, alarm above {_fmt(diag.threshold)})"
              + (f" -> {_fmt(diag.gap_after)} with {' + '.join(diag.selected)}" if diag.selected else ""))
     mt = info.get("matched_tests") or {}
@@ -129,6 +204,10 @@ def text(diag, source="") -> str:
     if nt or off:
         L.append("")
         L.append("  not testable with this recording (not the same as absent):")
+        if att is not None and att["ran"]:
+            tested = [e["name"] for e in att["effects"] if e["testable"]]
+            if tested:
+                L.append(f"    ({', '.join(tested)}: tested on the attitude-aided residual above)")
         for why, names in _grouped([(r.name, r.reason) for r in nt]):
             L.append(f"    {names[0]:24s} {why}" if len(names) == 1 else f"    {', '.join(names)}:")
             if len(names) > 1:
