@@ -20,6 +20,12 @@ Three separate steps, so the diagnoser never sees a label:
    ``OUT/score.json``.
 
 ``--subset ci`` runs the small fixed subset that CI runs (tests/test_diagnose_blind.py).
+``--simulator indep`` draws the trials from tools/indep_sim.py (a simulator written without
+:mod:`mkc_stream.sim`) with the same effects, magnitudes and forward models
+(tools/blind_indep.py adapts them); the default ``ours`` draws them from :mod:`mkc_stream.sim`.
+
+Size: about 670 lines; generation, the oracle and scoring share the trial's conventions (effect
+list, ranges, forward models, what counts as a miss), which one file keeps in step.
 """
 from __future__ import annotations
 
@@ -361,8 +367,27 @@ def oracle_snr(sim, clean, traj, sensor):
     return float(np.sqrt(r @ r))
 
 
-def make_trial(kind, effect, seed):
-    """One recording and its label."""
+def trial_effects(kind, truth, rng, traj, sensor):
+    """(custom effect objects, magnitude) of a trial's injected effect: a pair's coloured noise
+    is slower (40-80 s) than the single effect's, to be confusable with a random walk."""
+    if truth == "colored_noise" and kind == "pair":
+        sig = loguniform(rng, 0.1, 0.3)
+        tau = rng.uniform(40.0, 80.0)
+        noise = gauss_markov(rng, traj.t, sig, tau)
+        return [Inject(truth, "noise", lambda ctx: ctx.m.__iadd__(noise))], {"value": sig, "unit": "uT"}
+    return make_injection(truth, rng, traj, sensor)
+
+
+def make_trial(kind, effect, seed, simulator="ours"):
+    """One recording and its label; simulator "indep": from tools/indep_sim.py (tools/blind_indep.py)."""
+    if simulator == "indep":
+        if str(ROOT / "tools") not in sys.path:
+            sys.path.insert(0, str(ROOT / "tools"))
+        from blind_indep import make_indep_trial
+
+        return make_indep_trial(kind, effect, seed, sys.modules[__name__])
+    if simulator != "ours":
+        raise ValueError(f"unknown simulator {simulator!r}; use ours or indep")
     rng = np.random.default_rng(seed)
     other_loads, temp = True, "cycle"
     truth = effect
@@ -382,14 +407,7 @@ def make_trial(kind, effect, seed):
                          burst_fraction=float(rng.choice([0.0, 0.01, 0.03])))
     effects, label = [], {"kind": kind, "truth": None, "pair": None, "magnitude": None}
     if truth is not None:
-        if truth == "colored_noise" and kind == "pair":
-            sig = loguniform(rng, 0.1, 0.3)
-            tau = rng.uniform(40.0, 80.0)
-            noise = gauss_markov(rng, traj.t, sig, tau)
-            effects = [Inject(truth, "noise", lambda ctx: ctx.m.__iadd__(noise))]
-            mag = {"value": sig, "unit": "uT"}
-        else:
-            effects, mag = make_injection(truth, rng, traj, sensor)
+        effects, mag = trial_effects(kind, truth, rng, traj, sensor)
         label.update(truth=truth, magnitude=mag, pair=effect.split("|") if kind == "pair" else None)
     sim = simulate(traj, sensor, effects=[(e, {}) for e in effects], seed=seed + 1)
     if truth in ORACLE_EFFECTS:
@@ -435,8 +453,9 @@ def select(plan, only=None, index=None):
     return out
 
 
-def step_generate(out, plan):
-    """plan: (kind, effect, seed) tuples, or (plan index, tuple) pairs from :func:`select`."""
+def step_generate(out, plan, simulator="ours"):
+    """plan: (kind, effect, seed) tuples, or (plan index, tuple) pairs from :func:`select`;
+    simulator: "ours" (mkc_stream.sim) or "indep" (tools/indep_sim.py)."""
     rec_dir, sealed = out / "recordings", out / "sealed"
     rec_dir.mkdir(parents=True, exist_ok=True)
     sealed.mkdir(parents=True, exist_ok=True)
@@ -445,7 +464,7 @@ def step_generate(out, plan):
         if isinstance(item[1], tuple):
             i, item = item
         kind, effect, seed = item
-        rec, label = make_trial(kind, effect, seed)
+        rec, label = make_trial(kind, effect, seed, simulator)
         name = f"trial{i:04d}"
         rec.write(rec_dir / f"{name}.csv")
         # the library restriction is the trial's setup (what the diagnoser is given), not its label
@@ -625,6 +644,8 @@ def main(argv=None):
     ap.add_argument("--subset", choices=("ci",), help="the fixed small subset CI runs")
     ap.add_argument("--step", choices=("all", "generate", "run", "score"), default="all")
     ap.add_argument("--only", help="comma-separated effect names (and/or 'none'): only the plan's trials with them")
+    ap.add_argument("--simulator", choices=("ours", "indep"), default="ours",
+                    help="draw the trials from mkc_stream.sim (ours) or tools/indep_sim.py (indep)")
     ap.add_argument("--index", help="only these plan positions, e.g. 0,5,20-24 (names keep the position)")
     a = ap.parse_args(argv)
     out = pathlib.Path(a.out)
@@ -633,7 +654,7 @@ def main(argv=None):
         plan = select(plan, a.only, a.index)
     if a.step in ("all", "generate"):
         print(f"generating {len(plan)} recordings in {out}/recordings (labels sealed in {out}/sealed)")
-        step_generate(out, plan)
+        step_generate(out, plan, a.simulator)
     if a.step in ("all", "run"):
         print("diagnosing (labels unread)")
         step_run(out, a.jobs)
