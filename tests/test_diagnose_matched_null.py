@@ -16,7 +16,7 @@ from mkc_stream.diagnose.engine import Candidate, Engine
 from mkc_stream.diagnose.frame import prepare
 from mkc_stream.diagnose.matched import MatchedTests
 from mkc_stream.diagnose.forms import FORMS, Env
-from mkc_stream.diagnose.model import State, Term, fit_model, noise_free_point
+from mkc_stream.diagnose.model import NEIGHBOUR_SPREAD_RAD, State, Term, fit_model, noise_free_point
 from mkc_stream.sim import EFFECTS, SensorModel, generate, simulate
 
 NONLINEAR = ["scale_nonlinearity", "sensor_compression"]
@@ -33,21 +33,58 @@ def _matched(noise_uT, seed, effects=(), n=6000, replicas=24):
     return MatchedTests(eng, ev0, NONLINEAR)
 
 
+_ST = State(b=np.array([5.0, -3.0, 2.0]), S=np.array([[1.02, 0.01, 0.0], [0.01, 0.97, 0.02], [0.0, 0.02, 1.01]]),
+            F=48.0)
+
+
+def _on_sphere(m, st):
+    """The sample's own direction put on the fitted sphere (what noise_free_point falls back to)."""
+    mc = (m - st.b) @ st.S.T
+    return st.b + st.F * (mc / np.linalg.norm(mc, axis=1, keepdims=True)) @ np.linalg.inv(st.S).T
+
+
+def _great_circle(n, step_rad, rng, noise_uT=0.5):
+    ang = step_rad * np.arange(n)
+    u = np.stack([np.cos(ang), np.sin(ang) * 0.8, np.sin(ang) * 0.6], axis=1)
+    return 50.0 * u + _ST.b + rng.normal(scale=noise_uT, size=(n, 3))       # uT
+
+
 def test_noise_free_point_ignores_the_sample_and_lies_on_the_fitted_sphere():
     rng = np.random.default_rng(1)
-    st = State(b=np.array([5.0, -3.0, 2.0]), S=np.array([[1.02, 0.01, 0.0], [0.01, 0.97, 0.02], [0.0, 0.02, 1.01]]),
-               F=48.0)
-    u = rng.normal(size=(200, 3))
-    m = 50.0 * u / np.linalg.norm(u, axis=1, keepdims=True) + st.b + rng.normal(scale=0.5, size=(200, 3))   # uT
-    p = noise_free_point(m, st)
-    np.testing.assert_allclose(np.linalg.norm((p - st.b) @ st.S.T, axis=1), st.F, rtol=1e-12)
+    m = _great_circle(200, 0.02, rng)          # 0.02 rad between samples: the neighbours stand for it
+    p = noise_free_point(m, _ST)
+    np.testing.assert_allclose(np.linalg.norm((p - _ST.b) @ _ST.S.T, axis=1), _ST.F, rtol=1e-12)
     moved = m.copy()
     moved[[0, 57, 199]] += 3.0                      # uT: the samples' own values do not enter their points
-    q = noise_free_point(moved, st)
+    q = noise_free_point(moved, _ST)
     np.testing.assert_array_equal(q[[0, 57, 199]], p[[0, 57, 199]])
     assert not np.allclose(q[[1, 56, 58, 198]], p[[1, 56, 58, 198]])
     with pytest.raises(ValueError):
-        noise_free_point(np.zeros((5, 2)), st)
+        noise_free_point(np.zeros((5, 2)), _ST)
+
+
+def test_noise_free_point_reads_the_sample_itself_where_its_neighbours_lie_far_apart():
+    """Neighbours more than NEIGHBOUR_SPREAD_RAD apart (large motion between samples) do not stand
+    for the sample: its own direction, put on the sphere, is used instead (model.noise_free_point)."""
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(300, 3))              # independent directions: ~1.6 rad between samples
+    m = 50.0 * u / np.linalg.norm(u, axis=1, keepdims=True) + _ST.b + rng.normal(scale=0.5, size=(300, 3))
+    far = np.sum(_unit(m[:-2]) * _unit(m[2:]), axis=1) < np.cos(NEIGHBOUR_SPREAD_RAD)
+    assert far.mean() > 0.9
+    p = noise_free_point(m, _ST)
+    own = _on_sphere(m, _ST)
+    np.testing.assert_allclose(p[1:-1][far], own[1:-1][far], rtol=0, atol=1e-9)
+    # one jump in a slow sweep: only the two samples astride it read themselves
+    m = _great_circle(100, 0.02, rng)
+    m[50:] = _great_circle(50, 0.02, rng) @ np.diag([1.0, -1.0, -1.0]) + _ST.b * np.array([0.0, 2.0, 2.0])
+    p, own = noise_free_point(m, _ST), _on_sphere(m, _ST)
+    same = np.all(np.abs(p - own) < 1e-9, axis=1)
+    assert set(np.flatnonzero(same)) == {49, 50}
+
+
+def _unit(m):
+    x = (m - _ST.b) @ _ST.S.T
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
 @pytest.mark.parametrize("seed", [3000, 7000])
