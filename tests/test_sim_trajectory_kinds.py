@@ -4,6 +4,7 @@ that cannot determine an ellipsoid rejects the baseline and claims no effect."""
 import numpy as np
 import pytest
 
+from mkc_stream.calib.acceptance import evaluate
 from mkc_stream.commands.sim import TRAJECTORIES
 from mkc_stream.diagnose import diagnose, report
 from mkc_stream.diagnose.scope import CALIBRATION_FREE_EFFECTS
@@ -115,4 +116,16 @@ def test_static_diagnosis_rejects_the_baseline_and_claims_nothing():
     """One direction determines no ellipsoid; the calibrator names the failed fit (a few seconds)."""
     d = diagnose(_recording("static", 0), profile="fast", seed=0)
     _claims_no_effect(d)
-    assert d.info["scope"]["calibration_reason"]
+    assert "the sensor barely turned" in d.info["scope"]["calibration_reason"]
+
+
+def test_a_cloud_of_samples_is_named_as_such_only_when_its_field_is_below_the_range():
+    """The fit-error reason tells a sensor that barely turned (a cloud: a large fit error about a
+    field below the physical range) from a sphere with disturbances (the same error, a real field)."""
+    quality = {"coverage": 1.0, "condition": 10.0, "outlier_fraction": 0.0}
+    cloud = evaluate({**quality, "residual_rms": 0.42 * 0.3}, 0.3, "uT")
+    assert "barely turned" in cloud.text and {"residual", "field_range"} <= set(cloud.failed)
+    disturbed = evaluate({**quality, "residual_rms": 0.42 * 50.0}, 50.0, "uT")
+    assert disturbed.failed == ("residual",) and "barely turned" not in disturbed.text
+    unknown_unit = evaluate({**quality, "residual_rms": 0.42 * 0.3}, 0.3, "counts")
+    assert "barely turned" not in unknown_unit.text

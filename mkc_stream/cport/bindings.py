@@ -299,7 +299,8 @@ def reason_text(code: int, fails: int, v, rules=None) -> str:
     if fails & FAIL_OUTLIERS:
         fails_txt.append(A.outlier_failure(out, rules))
     if fails & FAIL_RESIDUAL:
-        fails_txt.append(A.residual_failure(rel, rules))
+        below = bool(fails & FAIL_FIELD_RANGE) and field < rules.field_range_ut[0]
+        fails_txt.append(A.residual_failure(rel, rules, below))
     if fails & FAIL_FIELD_RANGE:
         fails_txt.append(A.field_range_failure(field, rules))
     if fails & FAIL_FIELD_NONPOSITIVE:
