@@ -21,21 +21,24 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     mkc_real *w = g->core.ebuf, m[3], med, mad, thr, gain;
     mkc_creal sums[MKC_N_CELLS], ss = CR(0.0), se;
     int used[MKC_N_CELLS], k, n = 0, j, G = 0;
-#define ET(k) (calibrated(g, (k), trial, m) / trial->field - RC(1.0))
 #define EA(k) (calibrated(g, (k), acc, m) / acc->field - RC(1.0))
-    /* the MAD of e_t (stats.c mkc__mad_about_median's steps) */
+    /* the MAD of e_t (stats.c mkc__mad_about_median's steps). The first three passes fill w with
+     * the trial's norms |m_cal| (mkc__calibrated_norms), then work in place. */
+    mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
     for (k = 0; k < count; k++)
-        w[k] = ET(k);
+        w[k] = w[k] / trial->field - RC(1.0);
     med = mkc__median(w, count);
+    mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
     for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R(ET(k) - med);
+        w[k] = MKC_FABS_R((w[k] / trial->field - RC(1.0)) - med);
     mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_IN(et, ea) (!(mad != RC(0.0) && MKC_FABS_R((et) - med) > thr) && isfinite(et) && isfinite(ea))
+    mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
     for (k = 0; k < count; k++) {
-        mkc_real et = ET(k), ea = EA(k);
+        mkc_real et = w[k] / trial->field - RC(1.0), ea = EA(k);
         if (IS_IN(et, ea))
-            w[n++] = ea * ea - et * et;
+            w[n++] = ea * ea - et * et;        /* compacted in place: n <= k */
     }
     if (n < 2)
         return 0;
@@ -45,11 +48,10 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         used[k] = 0;
     }
     for (k = 0, j = 0; k < count; k++) {
-        mkc_real et = ET(k), ea = EA(k);
+        mkc_real mt[3], nk = calibrated(g, k, trial, mt), et = nk / trial->field - RC(1.0), ea = EA(k);
         if (IS_IN(et, ea)) {
-            mkc_real nk = calibrated(g, k, trial, m);
             /* numpy: cal / max(|cal|, 1e-300), the zero vector's cell at |cal| = 0 */
-            int c = nk > RC(0.0) ? mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)
+            int c = nk > RC(0.0) ? mkc__unit_direction_cell(mt[0] / nk, mt[1] / nk, mt[2] / nk)
                                  : mkc__unit_direction_cell(RC(0.0), RC(0.0), RC(0.0));
             sums[c] += (mkc_creal)(w[j++] - gain);
             used[c] = 1;
@@ -57,7 +59,6 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     }
 #undef IS_IN
 #undef EA
-#undef ET
     for (k = 0; k < MKC_N_CELLS; k++) {
         ss += sums[k] * sums[k];
         G += used[k];

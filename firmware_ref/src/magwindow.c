@@ -7,8 +7,8 @@
  */
 #include "mkc_internal.h"
 
-#if MKC_N_CELLS % 4 != 0
-#error "magwindow.c: some_cell_fuller reads the cell counts four at a time"
+#if MKC_N_CELLS % 8 != 0
+#error "magwindow.c: some_cell_fuller reads the cell counts eight at a time"
 #endif
 
 /* Cell 0..71 of a direction (need not be unit length; 0 for the zero vector). */
@@ -68,9 +68,10 @@ static int some_cell_fuller(const uint16_t *cc, unsigned v)
     int c;
     if (v > 0x7fffu)
         return 1;
-    for (c = 0; c < MKC_N_CELLS; c += 4) {
-        uint32_t lo = two_counts(cc + c), hi = two_counts(cc + c + 2);
-        hit |= lo | (lo + add) | hi | (hi + add);
+    for (c = 0; c < MKC_N_CELLS; c += 8) {
+        uint32_t w0 = two_counts(cc + c), w1 = two_counts(cc + c + 2), w2 = two_counts(cc + c + 4);
+        uint32_t w3 = two_counts(cc + c + 6);
+        hit |= w0 | (w0 + add) | w1 | (w1 + add) | w2 | (w2 + add) | w3 | (w3 + add);
     }
     return (hit & 0x80008000u) != 0;
 }
@@ -99,21 +100,24 @@ static int older_slot(const mkc_mag_t *g, int target, int from, int to, int best
  * some byte of x is zero (a borrow can mark a byte only above a zero byte). */
 static int oldest_slot_of_cell(const mkc_mag_t *g, int target, int W)
 {
-    const uint8_t *sc = g->slot_cell;
+    const uint8_t *sc = g->slot_cell, *p, *end = sc + (W - W % 8);
     const uint32_t ones = 0x01010101u, highs = 0x80808080u, pattern = (uint32_t)target * ones;
     unsigned best_stamp = 0;
-    int s, best = -1;
-    for (s = 0; s + 8 <= W; s += 8) {
-        uint32_t x = four_cells(sc + s) ^ pattern, y = four_cells(sc + s + 4) ^ pattern;
+    int best = -1;
+    p = sc;
+    if (p != end) do {     /* do-while: -Os keeps a for loop's test at the top, one more branch a pass */
+        uint32_t x = four_cells(p) ^ pattern, y = four_cells(p + 4) ^ pattern;
         uint32_t in_x = (x - ones) & ~x & highs, in_y = (y - ones) & ~y & highs;
         if (in_x | in_y) {
+            int s = (int)(p - sc);
             if (in_x)
                 best = older_slot(g, target, s, s + 4, best, &best_stamp);
             if (in_y)
                 best = older_slot(g, target, s + 4, s + 8, best, &best_stamp);
         }
-    }
-    return older_slot(g, target, s, W, best, &best_stamp);    /* the last W % 8 slots */
+        p += 8;
+    } while (p != end);
+    return older_slot(g, target, (int)(end - sc), W, best, &best_stamp);    /* the last W % 8 slots */
 }
 
 /* Slot for a new sample of direction `cell`: the target cell's oldest slot, i.e. its smallest stamp
@@ -134,6 +138,35 @@ int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W)
                 ;
     }
     return oldest_slot_of_cell(g, target, W);
+}
+
+mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3], mkc_real *m)
+{
+    mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2];
+    mkc_real m0 = v0 * S[0][0] + v1 * S[0][1] + v2 * S[0][2];
+    mkc_real m1 = v0 * S[1][0] + v1 * S[1][1] + v2 * S[1][2];
+    mkc_real m2 = v0 * S[2][0] + v1 * S[2][1] + v2 * S[2][2];
+    if (m) {
+        m[0] = m0;
+        m[1] = m1;
+        m[2] = m2;
+    }
+    return MKC_SQRT_R(m0 * m0 + m1 * m1 + m2 * m2);
+}
+
+void mkc__calibrated_norms(const mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real *out)
+{
+    const mkc_real b0 = b[0], b1 = b[1], b2 = b[2];
+    const mkc_real s00 = S[0][0], s01 = S[0][1], s02 = S[0][2], s10 = S[1][0], s11 = S[1][1], s12 = S[1][2];
+    const mkc_real s20 = S[2][0], s21 = S[2][1], s22 = S[2][2];
+    int k = 0;
+    if (count > 0) do {   /* do-while: -Os keeps a for loop's test at the top, one more branch a pass */
+        mkc_real v0 = g->raw[k][0] - b0, v1 = g->raw[k][1] - b1, v2 = g->raw[k][2] - b2;
+        mkc_real m0 = v0 * s00 + v1 * s01 + v2 * s02;
+        mkc_real m1 = v0 * s10 + v1 * s11 + v2 * s12;
+        mkc_real m2 = v0 * s20 + v1 * s21 + v2 * s22;
+        out[k] = MKC_SQRT_R(m0 * m0 + m1 * m1 + m2 * m2);
+    } while (++k < count);
 }
 
 /* The cells of the window's samples around the current centre c0. */

@@ -213,17 +213,10 @@ int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz);
 int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W);
 /* |m_cal| of window row k, m_cal = S (raw_k - b); m (may be NULL): m_cal. The checkpoint code
  * recomputes it from raw (quality figures, switching test) instead of keeping it in the state. */
-static inline mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3],
-                                            mkc_real *m)
-{
-    mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2], mm[3];
-    int i;
-    if (!m)
-        m = mm;
-    for (i = 0; i < 3; i++)
-        m[i] = v0 * S[i][0] + v1 * S[i][1] + v2 * S[i][2];
-    return MKC_SQRT_R(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
-}
+mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3], mkc_real *m);
+/* out[k] = mkc__calibrated_norm(g, k, b, S, NULL) for k < count, to the same bits: one pass with b
+ * and S held (the checkpoint code's passes over the window). */
+void mkc__calibrated_norms(const mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real *out);
 
 void mkc__recount_cells(mkc_mag_t *g, int count);
 /* slot has just been written (count: the window's samples before): it gets the newest stamp. */

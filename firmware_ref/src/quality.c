@@ -29,25 +29,28 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
     int hit[MKC_N_CELLS], k, nin = 0, nout = 0;
     for (k = 0; k < MKC_N_CELLS; k++)
         hit[k] = 0;
-    /* m_cal = (raw - b) S^T; cells of m_cal / |m_cal|; r = |m_cal| - F (RES) */
+    /* m_cal = (raw - b) S^T; cells of m_cal / |m_cal|; residuals r = |m_cal| - F */
     for (k = 0; k < count; k++) {
         mkc_real m[3], nk = mkc__calibrated_norm(g, k, b, S, m);
         if (nk > RC(0.0))
             hit[mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)] = 1;
     }
-#define RES(k) (mkc__calibrated_norm(g, (k), b, S, NULL) - F)
-    /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD (stats.c mkc__mad_about_median's steps) */
+    /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD (stats.c mkc__mad_about_median's steps). Each
+     * pass below first fills w with the norms |m_cal| (mkc__calibrated_norms), then works in place. */
+    mkc__calibrated_norms(g, count, b, S, w);
     for (k = 0; k < count; k++)
-        w[k] = RES(k);
+        w[k] = w[k] - F;
     med = mkc__median(w, count);
+    mkc__calibrated_norms(g, count, b, S, w);
     for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R(RES(k) - med);
+        w[k] = MKC_FABS_R((w[k] - F) - med);
     mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_OUT(r) (mad != RC(0.0) && MKC_FABS_R((r) - med) > thr)
-    /* residual_rms: over the inliers */
+    /* residual_rms: over the inliers (compacted in place: nin <= k) */
+    mkc__calibrated_norms(g, count, b, S, w);
     for (k = 0; k < count; k++) {
-        mkc_real r = RES(k);
+        mkc_real r = w[k] - F;
         if (IS_OUT(r)) {
             nout++;
         } else {
@@ -56,26 +59,26 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
     }
     /* (nin >= count / 2 always: at least half the residuals lie within one MAD of the median) */
     q[MKC_Q_RESIDUAL_RMS] = nin ? MKC_SQRT_R(mkc__pairwise_sum(w, nin) / (mkc_real)nin) : RC(HUGE_VAL);
+    mkc__calibrated_norms(g, count, b, S, w);
     for (k = 0; k < count; k++) {
-        mkc_real r = RES(k);
+        mkc_real r = w[k] - F;
         w[k] = r * r;
     }
     q[MKC_Q_RESIDUAL_RMS_ALL] = MKC_SQRT_R(mkc__pairwise_sum(w, count) / (mkc_real)count);
     /* np.std of the norms, then of the inliers' norms (compacted), each in w (np_std works in place) */
-    for (k = 0; k < count; k++)
-        w[k] = mkc__calibrated_norm(g, k, b, S, NULL);
+    mkc__calibrated_norms(g, count, b, S, w);
     q[MKC_Q_NORM_SPREAD] = np_std(w, count, w) / F;
     {
         int j = 0;
+        mkc__calibrated_norms(g, count, b, S, w);
         for (k = 0; k < count; k++) {
-            mkc_real nk = mkc__calibrated_norm(g, k, b, S, NULL);
+            mkc_real nk = w[k];                    /* compacted in place: j <= k */
             if (!IS_OUT(nk - F))
                 w[j++] = nk;
         }
         q[MKC_Q_NORM_SPREAD_INLIERS] = nin ? np_std(w, nin, w) / F : RC(HUGE_VAL);
     }
 #undef IS_OUT
-#undef RES
     q[MKC_Q_COVERAGE] = mkc__coverage_of_unit_cells(hit, MKC_N_CELLS);
     q[MKC_Q_OUTLIER_FRACTION] = (mkc_real)nout / (mkc_real)count;
     q[MKC_Q_CONDITION] = condition;

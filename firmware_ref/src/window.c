@@ -147,32 +147,78 @@ static void row_update4(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *con
     }
 }
 
-/* Two consecutive channel-rows in one pass (as row_update4): the per-sample "- old row, + new row". */
-static void row_update2(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x0, mkc_real y0, mkc_acc c0,
-                        const mkc_real *x1, mkc_real y1, mkc_acc c1, int n)
+/* Two consecutive channel-rows (the per-sample "- old row, + new row": row_update's additions for
+ * row 0 then row 1, in that order per element) fused with the tracking step's residual sums over
+ * the updated A: on return s[p] = b[p] - sum_q A[p][q] th[q] (A[p][q] below the diagonal, A[q][p]
+ * above), each s[p] subtracting in ascending q as the reference's row loop does, so the step is
+ * the same to the bit while A is read and written once. Rows are taken in pairs (p, p + 1), after
+ * row 0 alone when n is odd: column q < p gives both rows' own terms and then column q's terms from
+ * above the diagonal, which arrive in ascending row order after the ones row q itself left in s[q]. */
+static void row_update2_residual(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real x[2][MKC_N], mkc_real y0,
+                                 mkc_acc c0, mkc_real y1, mkc_acc c1, int n, mkc_acc ts[2][MKC_N])
 {
-    int p, q;
-    for (p = 0; p < n; p++) {
-        mkc_acc xp0 = (mkc_acc)x0[p] * c0, xp1 = (mkc_acc)x1[p] * c1;
-        mkc_acc t = b[p];
-        t += xp0 * (mkc_acc)y0;
-        t += xp1 * (mkc_acc)y1;
-        b[p] = t;
-        for (q = 0; q + 1 <= p; q += 2) {         /* column pairs, as row_update4 */
-            mkc_acc t0 = A[p][q], t1 = A[p][q + 1];
-            t0 += xp0 * (mkc_acc)x0[q];
-            t1 += xp0 * (mkc_acc)x0[q + 1];
-            t0 += xp1 * (mkc_acc)x1[q];
-            t1 += xp1 * (mkc_acc)x1[q + 1];
-            A[p][q] = t0;
-            A[p][q + 1] = t1;
-        }
-        if (q == p) {
-            t = A[p][q];
-            t += xp0 * (mkc_acc)x0[q];
-            t += xp1 * (mkc_acc)x1[q];
-            A[p][q] = t;
-        }
+    /* x[0]: the old row, x[1]: the new one; ts[0]: theta, ts[1]: s (each pair one array, so that
+     * the loop below walks three pointers) */
+    const mkc_real *x0 = x[0], *x1 = x[1];
+    const mkc_acc *th = ts[0];
+    mkc_acc *s = ts[1];
+    int p = 0, q;
+    if (n & 1) {                                   /* row 0 alone: its diagonal only */
+        mkc_acc u0 = (mkc_acc)x0[0] * c0, u1 = (mkc_acc)x1[0] * c1, t = b[0], a = A[0][0];
+        t += u0 * (mkc_acc)y0;
+        t += u1 * (mkc_acc)y1;
+        b[0] = t;
+        a += u0 * (mkc_acc)x0[0];
+        a += u1 * (mkc_acc)x1[0];
+        A[0][0] = a;
+        s[0] = t - a * th[0];
+        p = 1;
+    }
+    for (; p < n; p += 2) {
+        mkc_acc(*Ap)[MKC_N] = A + p;
+        mkc_acc u0 = (mkc_acc)x0[p] * c0, u1 = (mkc_acc)x1[p] * c1;              /* row p */
+        mkc_acc v0 = (mkc_acc)x0[p + 1] * c0, v1 = (mkc_acc)x1[p + 1] * c1;      /* row p + 1 */
+        mkc_acc th0 = th[p], th1 = th[p + 1], t0 = b[p], t1 = b[p + 1], a00, a10, a11;
+        t0 += u0 * (mkc_acc)y0;
+        t0 += u1 * (mkc_acc)y1;
+        t1 += v0 * (mkc_acc)y0;
+        t1 += v1 * (mkc_acc)y1;
+        b[p] = t0;
+        b[p + 1] = t1;
+        q = 0;
+        if (p > 0) do {   /* do-while: -Os keeps a for loop's test at the top, one more branch a pass */
+            mkc_acc xq0 = (mkc_acc)x[0][q], xq1 = (mkc_acc)x[1][q], thq = ts[0][q], sq = ts[1][q];
+            mkc_acc a0 = Ap[0][q], a1 = Ap[1][q];
+            a0 += u0 * xq0;
+            a0 += u1 * xq1;
+            a1 += v0 * xq0;
+            a1 += v1 * xq1;
+            Ap[0][q] = a0;
+            Ap[1][q] = a1;
+            t0 -= a0 * thq;
+            t1 -= a1 * thq;
+            sq -= a0 * th0;
+            sq -= a1 * th1;
+            ts[1][q] = sq;
+        } while (++q < p);
+        a00 = Ap[0][p];                            /* q = p, p + 1 */
+        a00 += u0 * (mkc_acc)x0[p];
+        a00 += u1 * (mkc_acc)x1[p];
+        a10 = Ap[1][p];
+        a10 += v0 * (mkc_acc)x0[p];
+        a10 += v1 * (mkc_acc)x1[p];
+        a11 = Ap[1][p + 1];
+        a11 += v0 * (mkc_acc)x0[p + 1];
+        a11 += v1 * (mkc_acc)x1[p + 1];
+        Ap[0][p] = a00;
+        Ap[1][p] = a10;
+        Ap[1][p + 1] = a11;
+        t0 -= a00 * th0;
+        t1 -= a10 * th0;
+        t0 -= a10 * th1;                           /* row p's first term from above the diagonal */
+        t1 -= a11 * th1;
+        s[p] = t0;
+        s[p + 1] = t1;
     }
 }
 
@@ -196,66 +242,80 @@ static int solve_window(mkc_core_t *c, mkc_acc *cond)
     return st;
 }
 
-/* One refinement step theta += (D L L^T D)^-1 (b - A theta) with the stored factor (O(n^2)), from
- * A's lower triangle. Returns 0 (theta untouched) if the step is not finite or larger than
- * REFINE_MAX_STEP |theta|: the factor is too stale, the caller refactors. */
-static int refine_theta(mkc_core_t *c)
+/* One refinement step theta += (D L L^T D)^-1 (b - A theta) with the stored factor (O(n^2)); s:
+ * b - A theta (row_update2_residual), overwritten. Returns 0 (theta untouched) if the step is not finite
+ * or larger than REFINE_MAX_STEP |theta|: the factor is too stale, the caller refactors. */
+static int refine_theta(mkc_core_t *c, mkc_acc *s)
 {
-    int p, q, k, i, j, n = c->cfg.n;
-    mkc_acc step = AC(0.0), size = AC(0.0), s[MKC_N], th[MKC_N];
-    /* r = D (b - A theta). Each s[p] subtracts A[p][q] theta[q] in ascending q (A[p][q] below the
-     * diagonal, A[q][p] above), as the reference's row loop. Two rows per pass, their sums in
-     * registers side by side (instead of one dependent chain, or sums bouncing through memory).
-     * Same operations, same order per p. */
-    for (q = 0; q < n; q++)
-        th[q] = (mkc_acc)c->theta[q];
-    for (p = 0; p + 1 < n; p += 2) {
-        mkc_acc s0 = c->b[p], s1 = c->b[p + 1];
-        for (q = 0; q < p; q++) {
-            s0 -= c->A[p][q] * th[q];
-            s1 -= c->A[p + 1][q] * th[q];
-        }
-        s0 -= c->A[p][p] * th[p];                  /* q = p */
-        s1 -= c->A[p + 1][p] * th[p];
-        s0 -= c->A[p + 1][p] * th[p + 1];          /* q = p + 1: above the diagonal for row p */
-        s1 -= c->A[p + 1][p + 1] * th[p + 1];
-        for (q = p + 2; q < n; q++) {
-            s0 -= c->A[q][p] * th[q];
-            s1 -= c->A[q][p + 1] * th[q];
-        }
-        s[p] = s0 * c->D[p];
-        s[p + 1] = s1 * c->D[p + 1];
+    int p, k, i, j, n = c->cfg.n;
+    mkc_acc step = AC(0.0), nan_sum = AC(0.0);
+    const mkc_acc(*L)[MKC_N] = (const mkc_acc(*)[MKC_N])c->L, (*Lk)[MKC_N];
+    /* forward solve L z = r, r = D (b - A theta): each s[p] is scaled by D[p], subtracts L[p][k] z_k
+     * in ascending k and is then scaled by L[p][p] (the inverse pivot); backward solve L^T y = z:
+     * each s[i] subtracts L[k][i] y_k in descending k and is then scaled by L[i][i], as the
+     * reference. Row by row (the running sums in registers), two rows per pass sharing the loads
+     * of z_k, y_k; a lone row first when n is odd (row 0 forward, row n - 1 backward). r, z and
+     * then y overwrite s in place (the reference's xs). */
+    p = 0;
+    if (n & 1) {
+        s[0] = s[0] * c->D[0] * L[0][0];
+        p = 1;
     }
-    if (p < n) {                                   /* n odd: the last row, all of it below the diagonal */
-        mkc_acc s0 = c->b[p];
-        for (q = 0; q <= p; q++)
-            s0 -= c->A[p][q] * th[q];
-        s[p] = s0 * c->D[p];
+    for (; p < n; p += 2) {
+        mkc_acc t0 = s[p] * c->D[p], t1 = s[p + 1] * c->D[p + 1];
+        k = 0;
+        if (p > 0) do {
+            t0 -= L[p][k] * s[k];
+            t1 -= L[p + 1][k] * s[k];
+        } while (++k < p);
+        t0 *= L[p][p];
+        t1 -= L[p + 1][p] * t0;
+        s[p] = t0;
+        s[p + 1] = t1 * L[p + 1][p + 1];
     }
-    /* forward solve L z = r column by column (each s[p] still subtracts L[p][k] xs[k] in ascending
-     * k, after its scaling by D[p]); backward solve L^T y = z column by column, as the reference
-     * (each xs[i] subtracts L[k][i] y_k in descending k; critical path n steps, not n(n-1)/2) */
-    for (k = 0; k < n; k++) {       /* z and then y overwrite s in place (the reference's xs) */
-        mkc_acc xk = s[k] * c->L[k][k];
-        s[k] = xk;
-        for (p = k + 1; p < n; p++)
-            s[p] -= c->L[p][k] * xk;
+    i = n - 1;
+    if (n & 1) {
+        s[i] = s[i] * L[i][i];
+        i -= 1;
     }
-    for (k = n - 1; k >= 0; k--) {
-        mkc_acc yk = s[k] * c->L[k][k];
-        s[k] = yk;
-        for (i = k - 1; i >= 0; i--)             /* s[k - 1] first: the next step needs it */
-            s[i] -= c->L[k][i] * yk;
+    for (; i > 0; i -= 2) {                        /* rows i, i - 1 */
+        mkc_acc t0 = s[i], t1 = s[i - 1];
+        k = n - 1;
+        Lk = L + k;
+        if (k > i) do {
+            t0 -= (*Lk)[i] * s[k];
+            t1 -= (*Lk)[i - 1] * s[k];
+            Lk--;
+        } while (--k > i);
+        t0 *= L[i][i];
+        t1 -= L[i][i - 1] * t0;
+        s[i] = t0;
+        s[i - 1] = t1 * L[i - 1][i - 1];
     }
-    for (j = 0; j < n; j++) {
-        c->xs[j] = s[j] * c->D[j];
-        step = mkc__max_a(step, MKC_FABS_A(c->xs[j]));
-        size = mkc__max_a(size, (mkc_acc)MKC_FABS_R(c->theta[j]));
-    }
-    if (!(step <= AC(MKC_REFINE_MAX_STEP) * size))   /* also catches NaN */
+    /* The reference's test: return 0 unless step <= REFINE_MAX_STEP size, step = max |xs_j| and
+     * size = max |theta_j| as mkc__max_a gives them (a NaN wins, and fails the test). nan_sum, a
+     * sum of the non-negative |values|, is NaN exactly when one of them is. Without a NaN, as the
+     * rounded product x -> REFINE_MAX_STEP x is monotone, REFINE_MAX_STEP size is the largest of
+     * the REFINE_MAX_STEP |theta_j|, so the test passes exactly when step <= REFINE_MAX_STEP
+     * |theta_j| for some j, which the second loop looks for. */
+    j = 0;
+    do {                                           /* n >= 1 */
+        mkc_acc xj = s[j] * c->D[j], ax = MKC_FABS_A(xj);
+        c->xs[j] = xj;
+        nan_sum += ax;
+        nan_sum += (mkc_acc)MKC_FABS_R(c->theta[j]);
+        if (ax > step)
+            step = ax;
+    } while (++j < n);
+    if (nan_sum != nan_sum)
         return 0;
-    for (j = 0; j < n; j++)
+    for (j = 0; !(step <= AC(MKC_REFINE_MAX_STEP) * (mkc_acc)MKC_FABS_R(c->theta[j])); j++)
+        if (j == n - 1)
+            return 0;
+    j = 0;
+    do
         c->theta[j] = (mkc_real)((mkc_acc)c->theta[j] + c->xs[j]);
+    while (++j < n);
     return 1;
 }
 
@@ -576,10 +636,10 @@ int mkc__cold_start(mkc_core_t *c, int rounds)
 int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int slot)
 {
     int n = c->cfg.n, m = c->cfg.m, W = c->cfg.window;
-    int i, j, ready, st, pend = 0;
-    mkc_acc cond;
-    mkc_real buf[MKC_N], old_x[MKC_N], oy = RC(0.0);
-    mkc_acc oc = AC(0.0);
+    int i, j, ready, st, old = 0, new_row = 0;
+    /* rows: the old row, then the new one, for row_update2_residual; ts: theta, then b - A theta */
+    mkc_real buf[MKC_N], rows[2][MKC_N], oy = RC(0.0), ny = RC(0.0);
+    mkc_acc cond, ts[2][MKC_N], oc = -AC(0.0), nc = -AC(0.0);
     if (slot < 0) {
         slot = (int)c->counters.head;
         c->counters.head = (slot + 1) % W;
@@ -588,15 +648,17 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
     if (slot < c->counters.count) {
         /* replace: subtract exactly what this slot added. One channel (m = 1): keep the old row
          * (store_row overwrites it) and subtract it in the same pass over A, b as the new row's
-         * addition below (row_update2: each element still receives "- old, + new" in that order). */
+         * addition below (row_update2_residual: each element still receives "- old, + new" in that
+         * order). A magnetometer row is computed straight into rows[0]. */
         if (m == 1 && c->C[slot][0] != RC(0.0)) {
-            const mkc_real *xo = row_at(c, slot, 0, buf);
-            for (j = 0; j < n; j++)
-                old_x[j] = xo[j];
+            const mkc_real *xo = row_at(c, slot, 0, rows[0]);
+            if (xo != rows[0])
+                for (j = 0; j < n; j++)
+                    rows[0][j] = xo[j];
             oy = target(c, slot, 0);
             oc = -(mkc_acc)c->C[slot][0];
-            pend = 1;
-        } else {
+            old = 1;
+        } else if (m > 1) {
             for (i = 0; i < m; i++)
                 if (c->C[slot][i] != RC(0.0))
                     row_update(c->A, c->b, row_at(c, slot, i, buf), target(c, slot, i), -(mkc_acc)c->C[slot][i],
@@ -615,16 +677,30 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
                    : RC(0.0);
         c->C[slot][i] = cc;
         if (cc != RC(0.0)) {
-            if (pend) {
-                row_update2(c->A, c->b, old_x, oy, oc, xk, yk[0], (mkc_acc)cc, n);
-                pend = 0;
+            if (m == 1) {
+                ny = yk[0];
+                nc = (mkc_acc)cc;
+                new_row = 1;
             } else {
                 row_update(c->A, c->b, xk + i * n, yk[i], (mkc_acc)cc, n);
             }
         }
     }
-    if (pend)
-        row_update(c->A, c->b, old_x, oy, oc, n);
+    /* A row that adds nothing (none replaced, weight 0, or m > 1, whose rows were added above)
+     * enters row_update2_residual as 0 with weight -0: each of its terms is then -0, and
+     * x + (-0) = x exactly for every x (+-0 included), so A and b are those of the updates above
+     * and the pass still forms the residual the tracking step takes. */
+    for (j = 0; j < n; j++) {
+        rows[1][j] = xk[j];
+        ts[0][j] = (mkc_acc)c->theta[j];
+    }
+    if (!old)
+        for (j = 0; j < n; j++)
+            rows[0][j] = RC(0.0);
+    if (!new_row)
+        for (j = 0; j < n; j++)
+            rows[1][j] = RC(0.0);
+    row_update2_residual(c->A, c->b, (const mkc_real(*)[MKC_N])rows, oy, oc, ny, nc, n, ts);
     c->counters.seen += 1;
     c->counters.since += 1;
     if (c->counters.count < c->cfg.min_samples) {
@@ -651,7 +727,7 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
     } else {
         int64_t age = c->counters.factor_age;
         st = MKC_OK;
-        if (age >= 0 && age < c->cfg.refactor_every && refine_theta(c)) {
+        if (age >= 0 && age < c->cfg.refactor_every && refine_theta(c, ts[1])) {
             c->counters.factor_age = age + 1;
         } else {
             st = solve_window(c, &cond);
