@@ -35,7 +35,8 @@ MAG = [v["name"] for v in INDEX["vectors"] if v["kind"] == "mag"]
 VECTORS = {v["name"]: v for v in INDEX["vectors"]}
 #: vectors that reach accepted checkpoints (the others never accept, in the reference too)
 ACCEPTING = {"syn_s1_b00", "syn_s2_b10", "syn_s3_b25", "syn_s4_b10_w128_k16", "syn_s7_b10_spikes", "syn_s6_b10_nan",
-             "qmc5883l_filtered", "qmc5883l_noisy_demo_w512", "ck_explorer", "syn_s4009_b25_pool_refit"}
+             "qmc5883l_filtered", "qmc5883l_noisy_demo_w512", "ck_explorer", "syn_s4009_b25_pool_refit",
+             "syn_s3299_b25_wrong_mode"}
 
 #: libgcc's software double-precision helpers (ARM EABI names and the generic ones)
 SOFT_DOUBLE = ("__aeabi_d", "__aeabi_f2d", "__aeabi_i2d", "__aeabi_ui2d", "__aeabi_l2d", "__aeabi_ul2d",

@@ -7,6 +7,8 @@
 - the pooled calibration (the default) averages the agreeing trials, so the final answer does not
   depend on where the stream started or on its rate beyond noise;
 - a pool that no longer fits the window (fails its fit gates) gives way to a better trial at once;
+  so does a wrong mode that still passes the gates but fits the window many times worse than a
+  strongly supported trial; the cold start that confirms a trial keeps the likelier of two starts;
 - a real change of the hard iron is followed;
 - the reported uncertainty matches the scatter of repeated fits when samples are independent.
 """
@@ -15,13 +17,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mkc_stream.calib.confidence import calibration_uncertainty, paired_gain
+from mkc_stream.calib import streaming
+from mkc_stream.calib.confidence import DOMINANCE, calibration_uncertainty, paired_gain, residual_ratio
+from mkc_stream.calib.ellipsoid import robust_sphere_fit, sphere_theta
 from mkc_stream.calib.fit import fit_ellipsoid
 from mkc_stream.calib.quality import quality_figures
 from mkc_stream.calib.result import Calibration
 from mkc_stream.calib.streaming import MagCalibrator
 from mkc_stream.calib.synthetic import synthetic_mag
 from mkc_stream._validation import MKCInputError
+from mkc_stream.kernels import window as K
+from mkc_stream.kernels.estep import estep_objective
 
 
 def feed(cal, raw, chunk=10):
@@ -123,6 +129,89 @@ def test_a_pool_that_no_longer_fits_the_window_gives_way_to_the_better_trial():
     assert gain > 3 * se                                        # the window prefers the trial strongly
     assert close.pool_n == 3 * 256 // 32 and close.pool_streak == 1   # yet one trial does not restart it
     assert np.array_equal(close.accepted.hard_iron, s.hard_iron + [0.4, 0.0, 0.0])
+
+
+def test_a_wrong_mode_that_still_passes_the_gates_gives_way_at_once(monkeypatch):
+    """A grown pool 3 uT off (6% of the field: it passes the window's fit gates) against the true
+    trial: the window's mean squared residual under the pool is many times the trial's, so the pool
+    restarts from the trial at once instead of after W / K such trials in a row."""
+    s = synthetic_mag(seed=31, N=256, burst_fraction=0.0)
+    raw = s.raw
+    q = quality_figures((raw - s.hard_iron) @ s.soft_iron.T, s.field, 2.0)
+    trial = Calibration(s.hard_iron.copy(), s.soft_iron, s.field, q, True)
+    wrong = _grown_pool(s, raw, s.hard_iron + [3.0, 0.0, 0.0], s.field)
+    assert wrong._pool_fits(raw, trial)                         # the older rules keep such a pool
+    assert residual_ratio(raw, trial, wrong.accepted) > 4 * DOMINANCE
+    wrong._offer_pooled(trial, raw)
+    assert wrong.pool_n == 1 and np.array_equal(wrong.accepted.hard_iron, s.hard_iron)
+    monkeypatch.setattr(streaming, "DOMINANCE", np.inf)         # without the rule: one trial in line
+    kept = _grown_pool(s, raw, s.hard_iron + [3.0, 0.0, 0.0], s.field)
+    kept._offer_pooled(trial, raw)
+    assert kept.pool_streak == 1 and kept.pool_n == 3 * 256 // 32
+
+
+@pytest.mark.parametrize("seed, before, limit", [(3020, 6.5, 0.1), (3279, 13.5, 1.0)])
+def test_streams_that_locked_onto_a_wrong_mode_under_heavy_bursts_recover(seed, before, limit):
+    """Synthetic sweeps with 25% bursts (window 512) whose stream ended 6.5 and 13.5 uT off, accepted:
+    seed 3020 by a pool that its correct trials waited behind (without DOMINANCE it still ends 6.5 uT
+    off), seed 3279 by cold starts that took the sphere start's wrong mode where WLS's was likelier
+    (with the sphere start alone, 13.5 uT off). The batch fit gets 0.02-0.03 uT on both."""
+    syn = synthetic_mag(seed=seed, N=3000, burst_fraction=0.25, rate_hz=50)
+    cal = feed(MagCalibrator(window=512, estep_every=32, keep_history=False), syn.raw)
+    assert cal.accepted is not None
+    assert np.linalg.norm(cal.accepted.hard_iron - syn.hard_iron) < limit < before
+
+
+def test_the_cold_start_keeps_the_run_the_window_likes_better():
+    """_better_cold_start leaves the state at whichever of its two runs has the lower window
+    objective (the sphere start on a tie); each run is repeatable from the saved warm state."""
+    syn = synthetic_mag(seed=3279, N=1300, burst_fraction=0.25, rate_hz=50)
+    cal = feed(MagCalibrator(window=512, estep_every=32, keep_history=False), syn.raw)
+    st = cal.stream.kernel_state
+    saved = {k: v.copy() for k, v in st.items()}
+    raw, _ = cal._window_raw()
+    fit = robust_sphere_fit(raw)
+    theta0 = sphere_theta((fit[0] - cal.c0) / cal.s0, fit[1] / cal.s0)
+
+    def objective():
+        return K.window_objective(st["icfg"], st["fcfg"], st["X"], st["Y"], st["theta"], st["sigma"], st["d"],
+                                  st["a"], st["ebuf"], st["cnt"])
+
+    runs = {}
+    for name, run in (("sphere", lambda: K.cold_start_at(*cal.stream.kernel_args, cal.COLD_START_ROUNDS, theta0)),
+                      ("wls", lambda: K.cold_start(*cal.stream.kernel_args, cal.COLD_START_ROUNDS))):
+        for k, v in st.items():
+            v[...] = saved[k]
+        run()
+        runs[name] = (objective(), st["theta"].copy())
+    for k, v in st.items():
+        v[...] = saved[k]
+    cal._better_cold_start(saved, theta0)
+    best = min(runs, key=lambda n: (runs[n][0], n != "sphere"))
+    assert np.array_equal(st["theta"], runs[best][1])
+    assert runs["sphere"][0] != runs["wls"][0]                  # the two starts end in different places
+
+
+def test_window_objective_is_the_e_steps_objective_at_the_current_estimate():
+    syn = synthetic_mag(seed=5, N=600, burst_fraction=0.1)
+    cal = feed(MagCalibrator(window=256, estep_every=32, keep_history=False), syn.raw)
+    st = cal.stream.kernel_state
+    args = (st["icfg"], st["fcfg"], st["X"], st["Y"], st["theta"], st["sigma"], st["d"], st["a"], st["ebuf"], st["cnt"])
+    n = int(st["cnt"][K.C_COUNT])
+    e = st["Y"][:n, 0] - np.array([sum(st["X"][s, 0, j] * st["theta"][j] for j in range(9)) for s in range(n)])
+    F, _, _ = estep_objective(np.log(st["sigma"][0]), np.log(st["d"][0]), e, n, st["a"][0], st["fcfg"][K.F_SIG_PULL])
+    assert K.window_objective(*args) == pytest.approx(F, rel=1e-12)
+    st["d"][0] = 0.0
+    assert K.window_objective(*args) == np.inf
+
+
+def test_residual_ratio():
+    s = synthetic_mag(seed=31, N=256, burst_fraction=0.0)
+    good = Calibration(s.hard_iron.copy(), s.soft_iron, s.field, {}, True)
+    assert residual_ratio(s.raw, good, good) == pytest.approx(1.0)
+    off = Calibration(s.hard_iron + [3.0, 0.0, 0.0], s.soft_iron, s.field, {}, True)
+    assert residual_ratio(s.raw, good, off) > 20 > 1 / 20 > residual_ratio(s.raw, off, good)
+    assert residual_ratio(s.raw[:1], good, off) == 1.0          # fewer than two samples: no evidence
 
 
 def test_a_new_hard_iron_is_followed():

@@ -103,7 +103,7 @@ def render() -> str:
     from mkc_stream import kernels as KS
     from mkc_stream.calib import acceptance
     from mkc_stream.calib.streaming import MagCalibrator
-    from mkc_stream.calib.confidence import Z_RESTART, Z_SWITCH
+    from mkc_stream.calib.confidence import DOMINANCE, Z_RESTART, Z_SWITCH
     from mkc_stream.defaults import DEFAULT_WINDOW
     from mkc_stream.kernels import estep as ES
     from mkc_stream.kernels import magwindow as MW
@@ -199,6 +199,7 @@ def render() -> str:
     p(f"#define MKC_MAX_SPHERE_SPREAD {_hex(MagCalibrator.MAX_SPHERE_SPREAD)} /* {MagCalibrator.MAX_SPHERE_SPREAD!r} */")
     p(f"#define MKC_Z_SWITCH {_hex(Z_SWITCH)} /* {Z_SWITCH!r}: calib/confidence.py */")
     p(f"#define MKC_Z_RESTART {_hex(Z_RESTART)} /* {Z_RESTART!r}: calib/confidence.py */")
+    p(f"#define MKC_DOMINANCE {_hex(DOMINANCE)} /* {DOMINANCE!r}: calib/confidence.py */")
     p(f"#define MKC_MAX_FAILED_CHECKPOINTS {MagCalibrator.MAX_FAILED_CHECKPOINTS}")
     p(f"#define MKC_MAX_MISFIT_TRIALS {MagCalibrator.MAX_MISFIT_TRIALS}")
     p(f"#define MKC_POOL_WINDOWS {MagCalibrator.POOL_WINDOWS}")

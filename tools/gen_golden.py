@@ -62,6 +62,10 @@ VECTORS = [
     # a wrong mode that passed the gates under heavy bursts, then a pool that no longer fits the window
     # (streaming.py _pool_fits) gives way to the better trial
     ("syn_s4009_b25_pool_refit", MAG, {"kind": "synthetic", "seed": 4009, "N": 3000, "burst": 0.25}, {}, True),
+    # heavy bursts with wrong modes: the cold start keeps the likelier of its two starts (WLS wins 5 of
+    # its 15 here), and a pool that a strongly supported trial fits 55 times better gives way at once
+    # (streaming.py _better_cold_start, confidence.residual_ratio)
+    ("syn_s3299_b25_wrong_mode", MAG, {"kind": "synthetic", "seed": 3299, "N": 3000, "burst": 0.25}, {}, True),
     # NaN samples reach the calibrator only in-process (a recording file's reader drops such rows)
     ("syn_s6_b10_nan", MAG, {"kind": "synthetic", "seed": 6, "N": 3000, "burst": 0.10,
                              "nan": [[1, 97, 5], [0, 251, 11]]}, {}, False),

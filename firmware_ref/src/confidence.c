@@ -12,13 +12,16 @@
 #define calibrated(g, k, c, m) mkc__calibrated_norm((g), (k), (c)->hard_iron, (c)->soft_iron, (m))
 
 /* supports_switch: 1 when the window supports replacing `acc` by `trial`, 2 when it does so strongly
- * (gain > Z_RESTART se, the pooled calibrator's restart test), 0 otherwise; i.e. gain > z se with
+ * (gain > Z_RESTART se, the pooled calibrator's restart test), 3 when strongly and `acc` fits the
+ * trial's inliers DOMINANCE times worse in mean squared residual (residual_ratio: sum(e_a^2) >
+ * DOMINANCE sum(e_t^2), sums in sample order; a wrong mode the pool must leave at once), 0 otherwise;
+ * i.e. gain > z se with
  * D_k = e_a,k^2 - e_t,k^2 over the trial's inliers, e_k = |S (m_k - b)| / F - 1, gain = mean(D) and
  * se^2 = G / (G - 1) sum_c (sum_{k in c} (D_k - gain))^2 / n^2 clustered by the trial-calibrated
  * direction cell c (G occupied cells). */
 int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *trial, const mkc_mag_calibration *acc)
 {
-    mkc_real *w = g->core.ebuf, m[3], med, mad, thr, gain;
+    mkc_real *w = g->core.ebuf, m[3], med, mad, thr, gain, sa = RC(0.0), st = RC(0.0);
     mkc_creal sums[MKC_N_CELLS], ss = CR(0.0), se;
     int used[MKC_N_CELLS], k, n = 0, j, G = 0;
 #define EA(k) (calibrated(g, (k), acc, m) / acc->field - RC(1.0))
@@ -37,8 +40,11 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
     for (k = 0; k < count; k++) {
         mkc_real et = w[k] / trial->field - RC(1.0), ea = EA(k);
-        if (IS_IN(et, ea))
+        if (IS_IN(et, ea)) {
             w[n++] = ea * ea - et * et;        /* compacted in place: n <= k */
+            sa += ea * ea;                     /* residual_ratio's sums, in sample order */
+            st += et * et;
+        }
     }
     if (n < 2)
         return 0;
@@ -67,7 +73,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         return 0;
     se = MKC_SQRT_C(ss * (mkc_creal)G / (mkc_creal)(G - 1)) / (mkc_creal)n;
     if ((mkc_creal)gain > CR(MKC_Z_RESTART) * se)
-        return 2;
+        return (st > RC(0.0) ? sa / st > RC(MKC_DOMINANCE) : sa > RC(0.0)) ? 3 : 2;
     return (mkc_creal)gain > CR(MKC_Z_SWITCH) * se;
 }
 

@@ -241,6 +241,40 @@ static void keep_cold_estimate(mkc_mag_t *g)
     c->defer_weights = 0;
 }
 
+/* The kept warm estimate back into A .. fit for another cold start from it; C still keeps it. */
+static void reload_warm_estimate(mkc_mag_t *g)
+{
+    kept_bytes(g, offsetof(mkc_core_t, A), (unsigned char *)(void *)&g->core + offsetof(mkc_core_t, A),
+               MKC_CORE_SAVED_BYTES);
+    g->core.defer_weights = 1;
+}
+
+/* A cold start's score: the window objective at its end (HUGE_VAL if it ended singular or
+ * non-finite). */
+static mkc_ereal cold_score(mkc_core_t *c, int status)
+{
+    mkc_ereal f;
+    if (status != MKC_OK && status != MKC_NOT_CONVERGED)
+        return EC(HUGE_VAL);
+    f = mkc__window_objective(c);
+    return isfinite(f) ? f : EC(HUGE_VAL);
+}
+
+/* _better_cold_start (calib/streaming.py): batch MKC-EM from the sphere start theta0 and from WLS,
+ * each from the kept warm estimate; the estimate is left at the one with the lower window objective
+ * (the sphere start on a tie). There is no room for a second estimate, so WLS runs first and is run
+ * again (the same bits) when it wins, which is the rarer outcome. */
+static void better_cold_start(mkc_mag_t *g, const mkc_real *theta0)
+{
+    mkc_ereal f_wls = cold_score(&g->core, mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS)), f_sphere;
+    reload_warm_estimate(g);
+    f_sphere = cold_score(&g->core, mkc__cold_start_at(&g->core, MKC_COLD_START_ROUNDS, theta0));
+    if (f_wls < f_sphere) {
+        reload_warm_estimate(g);
+        (void)mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
+    }
+}
+
 /* _cold_start_disagreement: batch MKC-EM from scratch on the window, in the estimate's own state.
  * Returns the disagreement max(|b_cold - b|, |F_cold - F|) (HUGE_VAL when the cold start gives no
  * ellipsoid, or is not run because the warm weights could not be recomputed: keep_warm_estimate;
@@ -256,8 +290,9 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
     mkc_real sb[3], sF = RC(0.0), theta0[9];
     int j, k, have_sphere = 0;
     *have_cold = 0;
-    /* from the window's own trimmed sphere (a high-breakdown start, independent of the warm trial);
-     * from WLS only when the window gives no sphere around the features' origin */
+    /* from the window's own trimmed sphere (a high-breakdown start, independent of the warm trial)
+     * and from WLS, the one the window's likelihood prefers kept (better_cold_start); only WLS when
+     * the window gives no sphere around the features' origin */
     if (count >= 8 && mkc__robust_sphere_fit(g, count, sb, &sF)) {
         for (j = 0; j < 3; j++)
             sc[j] = (mkc_creal)((sb[j] - g->c0[j]) / g->s0);
@@ -266,7 +301,7 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
     if (!keep_warm_estimate(g))
         return CR(HUGE_VAL);
     if (have_sphere)
-        mkc__cold_start_at(&g->core, MKC_COLD_START_ROUNDS, theta0);
+        better_cold_start(g, theta0);
     else
         mkc__cold_start(&g->core, MKC_COLD_START_ROUNDS);
     if (mkc__geometry_from_theta(g->core.theta, &geom, &unused) != MKC_REASON_NONE) {
@@ -316,7 +351,8 @@ static int pool_fits(mkc_mag_t *g, int count, const mkc_mag_calibration *cal)
  * max_disagreement_rel * F from it, or supports it strongly (gain > Z_RESTART se); W / K such trials in
  * a row restart the pool from the latest.
  * While the pool holds fewer than W / K trials, or when the pool fails the window's fit gates
- * (pool_fits), a trial the window supports replaces it. */
+ * (pool_fits), a trial the window supports replaces it; so does a strongly supported trial that fits
+ * its inliers DOMINANCE times better than the pool (supports_switch's 3: the pool is a wrong mode). */
 static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal)
 {
     mkc_acc member[13], n_cap, S[3][3], det, c;
@@ -331,12 +367,13 @@ static void offer_pooled(mkc_mag_t *g, int count, const mkc_mag_calibration *cal
     }
     member[12] = (mkc_acc)cal->field;
     if (g->pool_n > 0) {
-        int support = mkc__supports_switch(g, count, cal, a), better = support >= 1, strong = support == 2;
+        int support = mkc__supports_switch(g, count, cal, a), better = support >= 1, strong = support >= 2;
+        int dominant = support == 3;   /* a wrong mode: the strongly supported trial fits DOMINANCE times better */
         mkc_acc tol = (mkc_acc)g->rules.max_disagreement_rel * MKC_FABS_A(g->pool_mean[12]);
         mkc_acc d0 = member[0] - g->pool_mean[0], d1 = member[1] - g->pool_mean[1], d2 = member[2] - g->pool_mean[2];
         int far = MKC_SQRT_A(d0 * d0 + d1 * d1 + d2 * d2) > tol || MKC_FABS_A(member[12] - g->pool_mean[12]) > tol;
         /* a young pool, or one that no longer fits the window: the paired rule, the better trial replaces it */
-        if (better && (g->pool_n < per_window || !pool_fits(g, count, cal))) {
+        if ((better && (g->pool_n < per_window || !pool_fits(g, count, cal))) || dominant) {
             g->pool_n = 0;
         } else if (strong || (better && far)) {
             g->pool_streak += 1;

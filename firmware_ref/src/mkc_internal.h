@@ -205,6 +205,7 @@ int mkc__weights_recorded(const mkc_core_t *c);
 void mkc__estep_window(mkc_core_t *c);
 int mkc__restart(mkc_core_t *c);
 int mkc__cold_start(mkc_core_t *c, int rounds);
+mkc_ereal mkc__window_objective(mkc_core_t *c);
 int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0);
 int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0);
 

@@ -156,6 +156,7 @@ static const float mkc_gl_weights[MKC_GL_ORDER] = {
 #define MKC_MAX_SPHERE_SPREAD 0x1.3333333333333p-2 /* 0.3 */
 #define MKC_Z_SWITCH 0x1.0000000000000p+1 /* 2.0: calib/confidence.py */
 #define MKC_Z_RESTART 0x1.8000000000000p+1 /* 3.0: calib/confidence.py */
+#define MKC_DOMINANCE 0x1.0000000000000p+2 /* 4.0: calib/confidence.py */
 #define MKC_MAX_FAILED_CHECKPOINTS 4
 #define MKC_MAX_MISFIT_TRIALS 8
 #define MKC_POOL_WINDOWS 32

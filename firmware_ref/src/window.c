@@ -11,6 +11,9 @@
  * Rows: a mkc_stream_t stores them (X, Y); a mkc_mag_t stores the raw 3-vectors and the rows are
  * the ellipsoid features of eq. (36)-(37) recomputed from them (target 1), bit-identical to the
  * stored features of the Python reference (same formula, same normalisation).
+ *
+ * Size: over 600 lines: the one estimator of kernels/window.py (per-sample tracking, rebuild,
+ * E-step, restarts, cold starts), kept in one file so that it reads beside the reference.
  */
 #include "mkc_internal.h"
 
@@ -507,6 +510,33 @@ void mkc__estep_window(mkc_core_t *c)
     }
     c->fit.last_objective = (mkc_real)Fsum;
     c->counters.esteps += 1;
+}
+
+/* kernels/window.py window_objective: the E-step objective (estep.c: the window's mean negative
+ * log-likelihood of the truncated induced pdf, with the weak prior on sigma), summed over channels,
+ * at the current theta, sigma, d and truncation a; the residuals formed as mkc__estep_window forms
+ * them (their squares in ebuf). HUGE_VAL when sigma, d or a is not positive. */
+mkc_ereal mkc__window_objective(mkc_core_t *c)
+{
+    int n = c->cfg.n, m = c->cfg.m;
+    int count = (int)c->counters.count;
+    int s, i, j;
+    mkc_ereal total = EC(0.0), g0, g1;
+    mkc_real buf[MKC_N];
+    for (i = 0; i < m; i++) {
+        if (!(c->sigma[i] > RC(0.0) && c->d[i] > RC(0.0) && c->a[i] > RC(0.0)) || count < 1)
+            return EC(HUGE_VAL);
+        for (s = 0; s < count; s++) {
+            const mkc_real *x = row_at(c, s, i, buf);
+            mkc_real r = target(c, s, i);
+            for (j = 0; j < n; j++)
+                r -= x[j] * c->theta[j];
+            c->ebuf[s] = r * r;
+        }
+        total += mkc__estep_objective(MKC_LOG_E((mkc_ereal)c->sigma[i]), MKC_LOG_E((mkc_ereal)c->d[i]), c->ebuf,
+                                      count, (mkc_ereal)c->a[i], (mkc_ereal)c->cfg.sigma_pull, &g0, &g1);
+    }
+    return total;
 }
 
 /* First solve once min_samples are in: WLS (sigma = inf) on the window, then Algorithm 1. */

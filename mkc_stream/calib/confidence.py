@@ -41,6 +41,12 @@ Z_SWITCH = 2.0
 #: z at which the pooled calibrator (streaming.py) counts a trial as disagreeing with its pool however
 #: close the two are: W / K such trials in a row restart the pool
 Z_RESTART = 3.0
+#: the pooled calibrator restarts its pool at once from a trial the window supports at Z_RESTART whose
+#: inliers the pool fits with a mean squared residual more than this many times the trial's (the pool's
+#: RMS residual there over twice the trial's): the pool is then a wrong mode, not a window's noise
+#: (on BROAD's real recordings the ratio of a supported trial stays near 1; wrong modes under heavy
+#: synthetic bursts give 6-230)
+DOMINANCE = 4.0
 
 
 def relative_residuals(raw, b, S, F) -> np.ndarray:
@@ -74,6 +80,27 @@ def paired_gain(raw, trial, accepted):
     # cluster-robust variance of the mean, with the small-sample factor G / (G - 1)
     se = math.sqrt(float(sums @ sums) * used / (used - 1)) / n
     return gain, se, n
+
+
+def residual_ratio(raw, trial, accepted) -> float:
+    """sum(e_a^2) / sum(e_t^2) over the trial's inliers (paired_gain's samples): how many times the
+    accepted calibration's mean squared relative residual exceeds the trial's where the trial fits.
+    inf when the trial fits them exactly and the accepted one does not; 1 without two inliers.
+    The sums run in sample order, one term at a time, as the C port accumulates them beside the
+    paired test's differences (confidence.c), so both take the same decision to the last bit."""
+    raw = np.asarray(raw, dtype=np.float64)
+    et = relative_residuals(raw, trial.hard_iron, trial.soft_iron, trial.field)
+    ea = relative_residuals(raw, accepted.hard_iron, accepted.soft_iron, accepted.field)
+    keep = ~outlier_mask(et) & np.isfinite(et) & np.isfinite(ea)
+    if int(keep.sum()) < 2:
+        return 1.0
+    sa = st = 0.0
+    for a, t in zip(ea[keep].tolist(), et[keep].tolist()):
+        sa += a * a
+        st += t * t
+    if st > 0.0:
+        return sa / st
+    return math.inf if sa > 0.0 else 1.0
 
 
 def supports_switch(raw, trial, accepted, z: float = Z_SWITCH) -> tuple:

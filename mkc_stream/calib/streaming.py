@@ -21,7 +21,7 @@ from ..kernels import window as K
 from ..defaults import DEFAULT_ESTEP_EVERY, DEFAULT_WINDOW
 from ..stream import StreamingMKC
 from .acceptance import AcceptanceRules, coverage_wait_reason, degenerate_reason, evaluate, motion_wait_reason
-from .confidence import Z_RESTART, calibration_uncertainty, supports_switch
+from .confidence import DOMINANCE, Z_RESTART, calibration_uncertainty, residual_ratio, supports_switch
 from .ellipsoid import (EllipsoidError, Normalisation, calibration_from_geometry, geometry_from_theta,
                         raw_geometry, robust_sphere_fit, sphere_theta)
 from .fit import weighted_condition
@@ -315,6 +315,10 @@ class MagCalibrator:
         (fewer than W / K trials) follows the paired rule: a trial the window supports replaces it, so
         the first windows of a stream, fitted before the motion covered much, do not weigh on the pool.
         So does a pool that fails the window's fit gates (_pool_fits): it no longer describes the data.
+        And so does a pool that a strongly supported trial (gain > Z_RESTART se) fits DOMINANCE times
+        better in mean squared residual over the trial's inliers (confidence.residual_ratio): a wrong
+        mode the stream locked onto, which can pass the gates to the end of a run (synthetic seeds 3020
+        and 3299 at 25% bursts ended 6.5 and 4.0 uT off, their correct trials waiting in line).
         (Under heavy bursts a wrong mode 12 uT off can pass the gates for a while; the window favours the
         correct trials that follow at only ~3 se, so the restart's W / K of them in a row would come
         after the end of a 60 s stream.)
@@ -336,8 +340,11 @@ class MagCalibrator:
             far = math.sqrt(db[0] * db[0] + db[1] * db[1] + db[2] * db[2]) > tol or \
                 abs(member[12] - self.pool_mean[12]) > tol
             strong = gain > Z_RESTART * se
+            # a pool the window's strongly supported trial beats by DOMINANCE in mean squared residual
+            # is a wrong mode: it gives way at once (waiting W / K trials in a row can outlast the stream)
+            dominant = strong and residual_ratio(raw, cal, self.accepted) > DOMINANCE
             # a young pool, or one that no longer fits the window: the paired rule, the better trial replaces it
-            if better and (self.pool_n < per_window or not self._pool_fits(raw, cal)):
+            if better and (self.pool_n < per_window or not self._pool_fits(raw, cal)) or dominant:
                 self.pool_n = 0
             elif strong or (better and far):
                 self.pool_streak += 1
@@ -391,13 +398,14 @@ class MagCalibrator:
         st = self.stream.kernel_state
         saved = {k: v.copy() for k, v in st.items()}
         # from the window's own trimmed sphere (a high-breakdown start, independent of the warm
-        # trial); from WLS only when the window gives no sphere around the features' origin
+        # trial) and from WLS; the one the window's likelihood prefers is kept (_better_cold_start).
+        # Only WLS when the window gives no sphere around the features' origin.
         fit = robust_sphere_fit(raw) if raw.shape[0] >= 8 else None
         theta0 = None if fit is None else sphere_theta((fit[0] - self.c0) / self.s0, fit[1] / self.s0)
         if theta0 is None:
             K.cold_start(*self.stream.kernel_args, self.COLD_START_ROUNDS)
         else:
-            K.cold_start_at(*self.stream.kernel_args, self.COLD_START_ROUNDS, theta0)
+            self._better_cold_start(saved, theta0)
         try:
             geom = raw_geometry(geometry_from_theta(st["theta"]), Normalisation(self.c0.copy(), self.s0))
             bc, Sc, Fc = calibration_from_geometry(geom)
@@ -412,6 +420,37 @@ class MagCalibrator:
         dc = float(st["d"][0])
         qc = quality_figures((raw - bc) @ Sc.T, Fc, weighted_condition(st["X"][:count, 0, :], st["C"][:count, 0] * dc * dc))
         return disagreement, (bc, Sc, Fc, qc, float(st["sigma"][0]), dc)
+
+    def _better_cold_start(self, saved, theta0):
+        """Batch MKC-EM from the sphere start theta0 and from WLS, each from the warm state `saved`;
+        the stream's state is left at the one with the lower E-step objective at its final theta,
+        sigma, d and truncation (kernels.window.window_objective: the window's mean negative
+        log-likelihood of the truncated induced pdf, eqs. (29)-(31)); the sphere start on a tie.
+
+        Why two starts: under heavy bursts (a quarter of the window or more) the window's MKC-EM has
+        more than one fixed point, and either start can fall into a wrong one that passes every gate
+        (synthetic seed 3279 at 25%: the sphere start's mode 15 uT off, WLS's 0.07). EM from several
+        starts, kept by likelihood, is the standard cure; the likelihood is what both runs maximise.
+        A run that ends singular or with a non-finite objective counts as worst.
+        """
+        st = self.stream.kernel_state
+        args = self.stream.kernel_args
+
+        def score(status):
+            if status not in (K.OK, K.NOT_CONVERGED):
+                return math.inf
+            f = K.window_objective(st["icfg"], st["fcfg"], st["X"], st["Y"], st["theta"], st["sigma"], st["d"], st["a"],
+                                   st["ebuf"], st["cnt"])
+            return f if math.isfinite(f) else math.inf
+
+        f_sphere = score(K.cold_start_at(*args, self.COLD_START_ROUNDS, theta0))
+        from_sphere = {k: v.copy() for k, v in st.items()}
+        for k, v in st.items():
+            v[...] = saved[k]
+        f_wls = score(K.cold_start(*args, self.COLD_START_ROUNDS))
+        if not f_wls < f_sphere:
+            for k, v in st.items():
+                v[...] = from_sphere[k]
 
     def _try_final_normalisation(self, raw, seen, esteps):
         fit = robust_sphere_fit(raw) if len(raw) >= 8 else None

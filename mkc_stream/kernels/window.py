@@ -23,7 +23,7 @@ import math
 from .._numba import kernel
 from ..robust import MAD_SCALE
 from . import OK, NOT_CONVERGED, SINGULAR, BAD_INPUT
-from .estep import estep_channel
+from .estep import estep_channel, estep_objective
 from .linalg import spd_solve
 from .correntropy import gauss_weight, weight_exponent_scale
 
@@ -227,6 +227,29 @@ def estep_window(icfg, fcfg, X, Y, theta, sigma, d, a, Hes, R, ebuf, cnt, fst):
             Fsum += F
     fst[S_LAST_F] = Fsum
     cnt[C_ESTEPS] += 1
+
+
+@kernel
+def window_objective(icfg, fcfg, X, Y, theta, sigma, d, a, ebuf, cnt):
+    """The E-step objective (estep.py: the window's mean negative log-likelihood of the truncated
+    induced pdf, with the weak prior on sigma), summed over channels, at the current theta, sigma, d
+    and truncation a: how well the estimate explains the window. Residuals formed as estep_window
+    forms them (into ebuf, scratch). Non-finite when sigma, d or a are not positive."""
+    n = icfg[I_N]
+    m = icfg[I_M]
+    count = cnt[C_COUNT]
+    total = 0.0
+    for i in range(m):
+        if not (sigma[i] > 0.0 and d[i] > 0.0 and a[i] > 0.0) or count < 1:
+            return math.inf
+        for s in range(count):
+            r = Y[s, i]
+            for j in range(n):
+                r -= X[s, i, j] * theta[j]
+            ebuf[s] = r
+        F, _, _ = estep_objective(math.log(sigma[i]), math.log(d[i]), ebuf, count, a[i], fcfg[F_SIG_PULL])
+        total += F
+    return total
 
 
 @kernel
