@@ -3,6 +3,10 @@
  */
 #include "mkc_internal.h"
 
+/* mkc_internal.h's float min/max (Numba's semantics: the first argument on ties, NaN wins). */
+float mkc__min_f(float a, float b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
+float mkc__max_f(float a, float b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
+
 /* Solve A x = b for symmetric positive definite A[:n, :n] (lower triangle and diagonal read).
  * Jacobi equilibration D A D y = D b, x = D y with D = diag(A_ii^-1/2), then Cholesky; the diagonal
  * of L holds the inverse pivots 1/l_jj. *cond = (max l_jj / min l_jj)^2, a cheap lower estimate of

@@ -57,32 +57,7 @@ typedef char mkc__check_named_fields[
  * shifted to 52 bits), because on a single-precision FPU the compiler's float-to-double conversion is
  * a call into libgcc's software double, which would then be linked for these few stores alone. */
 #if defined(MKC_USE_FLOAT) && !MKC_ACC_DOUBLE && !MKC_ESTEP_DOUBLE && MKC_CREAL_FLOAT
-static inline double mkc__reason_value(float x)
-{
-    union { float f; uint32_t u; } in;
-    union { uint64_t u; double d; } out;
-    uint32_t exponent, mantissa;
-    uint64_t exp64;
-    in.f = x;
-    exponent = (in.u >> 23) & 0xffu;
-    mantissa = in.u & 0x7fffffu;
-    if (exponent == 0xffu) {
-        exp64 = 0x7ffu;                             /* inf, NaN */
-    } else if (exponent != 0u) {
-        exp64 = (uint64_t)exponent + (1023u - 127u);
-    } else if (mantissa == 0u) {
-        exp64 = 0u;                                 /* +-0 */
-    } else {
-        exp64 = 1023u - 126u;                       /* subnormal: m 2^-149 = 1.f 2^(-126-k) */
-        while (!(mantissa & 0x800000u)) {
-            mantissa <<= 1;
-            exp64 -= 1u;
-        }
-        mantissa &= 0x7fffffu;
-    }
-    out.u = (uint64_t)(in.u >> 31) << 63 | exp64 << 52 | (uint64_t)mantissa << 29;
-    return out.d;
-}
+double mkc__reason_value(float x);   /* quality.c */
 #define MKC_REASON_VALUE(x) mkc__reason_value((float)(x))
 #else
 #define MKC_REASON_VALUE(x) ((double)(x))
@@ -101,8 +76,8 @@ static inline double mkc__reason_value(float x)
 #define MKC_MIN(a, b) mkc__min_d((double)(a), (double)(b))
 static inline double mkc__min_d(double a, double b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
 static inline double mkc__max_d(double a, double b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
-static inline float mkc__min_f(float a, float b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
-static inline float mkc__max_f(float a, float b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
+float mkc__min_f(float a, float b);   /* linalg.c: one copy for the library, not one per file */
+float mkc__max_f(float a, float b);
 #ifdef MKC_USE_FLOAT
 #define mkc__min_r mkc__min_f
 #define mkc__max_r mkc__max_f

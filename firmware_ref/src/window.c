@@ -445,7 +445,7 @@ void mkc__estep_window(mkc_core_t *c)
     int count = (int)c->counters.count;
     int s, i, j;
     mkc_ereal Fsum = EC(0.0);
-    mkc_real buf[MKC_N], buf2[MKC_N], th[MKC_N];
+    mkc_real buf[MKC_N], th[MKC_N];
     /* theta in a local copy: the stores to ebuf cannot alias it, so the loads need not wait for them */
     for (j = 0; j < n; j++)
         th[j] = c->theta[j];
@@ -453,26 +453,7 @@ void mkc__estep_window(mkc_core_t *c)
         mkc_real amax = RC(0.0), ymax = RC(0.0), ai;
         mkc_ereal s_new, d_new, F;
         int its, st;
-        s = 0;
-        if (m == 1) {
-            /* one channel: two rows per pass, two independent dot products sharing the loop */
-            for (; s + 1 < count; s += 2) {
-                const mkc_real *x0 = row_at(c, s, 0, buf);
-                const mkc_real *x1 = row_at(c, s + 1, 0, buf2);
-                mkc_real y0 = target(c, s, 0), y1 = target(c, s + 1, 0), r0 = y0, r1 = y1;
-                for (j = 0; j < n; j++) {
-                    r0 -= x0[j] * th[j];
-                    r1 -= x1[j] * th[j];
-                }
-                c->ebuf[s] = r0 * r0;                 /* the objective needs the squares only */
-                c->ebuf[s + 1] = r1 * r1;
-                amax = mkc__max_r(amax, MKC_FABS_R(r0));
-                ymax = mkc__max_r(ymax, MKC_FABS_R(y0));
-                amax = mkc__max_r(amax, MKC_FABS_R(r1));
-                ymax = mkc__max_r(ymax, MKC_FABS_R(y1));
-            }
-        }
-        for (; s < count; s++) {
+        for (s = 0; s < count; s++) {
             const mkc_real *x = row_at(c, s, i, buf);
             mkc_real y = target(c, s, i), r = y;
             for (j = 0; j < n; j++)
