@@ -209,6 +209,26 @@ def noise_free_point(m, st: State) -> np.ndarray:
     mh = np.empty_like(m)
     mh[1:-1] = 0.5 * (m[:-2] + m[2:])
     mh[0], mh[-1] = m[1], m[-2]
+    far = far_neighbours(m, st)
+    mh[far] = m[far]
+    mc = (mh - st.b) @ st.S.T
+    u = mc / np.maximum(np.linalg.norm(mc, axis=1, keepdims=True), 1e-300)
+    return st.b + (st.F * u) @ np.linalg.inv(st.S).T
+
+
+def far_neighbours(m, st: State) -> np.ndarray:
+    """(N,) bool: the samples whose two neighbours (one at the ends) no longer stand for them,
+    the rule :func:`noise_free_point` uses (see its "Why the spread limit"): the neighbours'
+    calibrated directions, u = S (m - b) / |S (m - b)|, lie more than NEIGHBOUR_SPREAD_RAD apart
+    (half that to the one neighbour at an end) AND their distance |S (m[n+1] - m[n-1])| exceeds
+    NEIGHBOUR_NOISE_K robust sds (1.4826 MAD) of the calibrated norm |S (m - b)|. All False
+    below 3 samples."""
+    if m.ndim != 2 or m.shape[1] != 3:
+        raise ValueError(f"far_neighbours needs (N, 3) magnetometer samples, got shape {m.shape}")
+    n = m.shape[0]
+    far = np.zeros(n, dtype=bool)
+    if n < 3:
+        return far
     xc = (m - st.b) @ st.S.T
     rc = np.linalg.norm(xc, axis=1)
     uc = xc / np.maximum(rc, 1e-300)[:, None]
@@ -217,15 +237,11 @@ def noise_free_point(m, st: State) -> np.ndarray:
     # well above the noise (a sensor at rest, a fit of a few uT), the directions are noise
     # and the neighbours are kept
     lim = NEIGHBOUR_NOISE_K * 1.4826 * np.median(np.abs(rc - np.median(rc)))
-    far = np.empty(n, dtype=bool)
     far[1:-1] = ((np.sum(uc[:-2] * uc[2:], axis=1) < np.cos(NEIGHBOUR_SPREAD_RAD))
                  & (np.linalg.norm(xc[2:] - xc[:-2], axis=1) > lim))
     for i, j in ((0, 1), (n - 1, n - 2)):                    # one neighbour at the ends
         far[i] = np.dot(uc[i], uc[j]) < np.cos(0.5 * NEIGHBOUR_SPREAD_RAD) and np.linalg.norm(xc[i] - xc[j]) > lim
-    mh[far] = m[far]
-    mc = (mh - st.b) @ st.S.T
-    u = mc / np.maximum(np.linalg.norm(mc, axis=1, keepdims=True), 1e-300)
-    return st.b + (st.F * u) @ np.linalg.inv(st.S).T
+    return far
 
 
 def columns_at(frame, m, st: State, terms=()) -> np.ndarray:
