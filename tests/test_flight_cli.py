@@ -88,3 +88,24 @@ def test_a_flight_calibration_goes_to_the_autopilot_with_its_current_compensatio
     text = param.read_text()
     assert "COMPASS_MOTCT,2" in text                      # compensation against current
     assert compass is not None and json.loads(out)["compensation"]["current"] is not None
+
+
+def test_the_tilt_error_is_estimated_by_default_and_can_be_given_or_turned_off(flight_csv, capsys):
+    path, _ = flight_csv
+    fits = {}
+    for opt in ([], ["--tilt-sd-deg", "off"], ["--tilt-sd-deg", "0.4"]):
+        code, out, _ = run(["calibrate", str(path), "--json", "-", "--quiet", *opt], capsys)
+        assert code == 0
+        fits[" ".join(opt)] = json.loads(out)["attitude_fit"]
+    assert 0.1 < fits[""]["tilt_error_sd_deg"] < 0.6            # the simulated log's is 0.3 deg
+    assert fits[""]["tilt_error_sd_estimated_deg"] == fits[""]["tilt_error_sd_deg"]
+    assert fits["--tilt-sd-deg off"]["tilt_error_sd_deg"] is None
+    assert fits["--tilt-sd-deg 0.4"]["tilt_error_sd_deg"] == pytest.approx(0.4)
+    assert fits["--tilt-sd-deg 0.4"]["tilt_error_sd_estimated_deg"] is None
+
+
+@pytest.mark.parametrize("bad", ["-1", "nan", "often"])
+def test_a_bad_tilt_error_is_a_usage_error(flight_csv, capsys, bad):
+    path, _ = flight_csv
+    code, _, err = run(["calibrate", str(path), "--tilt-sd-deg", bad], capsys)
+    assert code == 2 and "--tilt-sd-deg" in err and "expected an angle" in err

@@ -25,21 +25,25 @@ Methods (the first three on the vector model m = A R^T h_E + b + K c(t - tau), m
          field turned by the log's roll and pitch and the corrected sample's own heading
          (tools/peer_magfit.py has the cost, the bounds and why it is reimplemented).
 Figures per run: hard-iron error |b - b_true| (uT), current-coefficient error |K - K_true| / |K_true|,
-delay error (ms), and the heading RMS (deg) of the calibrated noise-free field along the flight
-(attitude from the truth, so it measures the calibration, not the attitude's error). A fit against the
-log's attitude takes the log's mean yaw error over the flight into its rotation about z (it cannot be
-told from a mounting rotation), so each run also records that mean (the logged yaw minus the true yaw,
-deg), the mean heading error and the heading RMS about its mean (the part the calibration's shape owns).
+delay error (ms), and the heading RMS (deg) of the noise-free field corrected by the calibration as
+delivered (the symmetric matrix the parameter files hold, delivered_matrix) along the flight, turned by
+the true attitude (so it measures the calibration, not the attitude's error). A fit against the log's
+attitude takes the log's mean yaw error over the flight into its rotation about z (it cannot be told
+from a mounting rotation); that rotation is reported as the misalignment and not delivered, and
+heading_rms_full_model_deg is the heading RMS with it applied (the whole fitted A). Each run also
+records the log's mean yaw error (the logged yaw minus the true yaw, deg), the mean heading error and
+the heading RMS about its mean.
 With --level-hard-iron each run also records b_err_level = |b - b_true + e_z (A_22 - A_22,true) mean(h_z)|
 (uT, h_z the true body field's z): in level flight b_z and the vertical gain A_22 trade along a ridge
 (b_z + A_22 h_z is what the flight determines, VIF of h_z 200-700), and this figure is the hard-iron
 error with that trade removed, i.e. the error of the calibrated field at the flight's mean attitude.
---tilt-sd-deg S runs ours and ls with the attitude's roll/pitch error of S deg corrected for (corrected least
-squares, vector_fit.py; the simulated log's is 0.3 deg).
+--tilt-sd-deg S|auto|off: the attitude's roll/pitch error ours and ls correct for (corrected least squares,
+vector_fit.py): S deg as stated, estimated from the residuals (auto, the default, as fit_flight), or none;
+the simulated log's is 0.3 deg.
 
     python tools/study_flight.py --seeds 4 [--minutes 30 30] [--rate 10] [--json out.json] [--plot out.png]
         [--methods ours,ls,px4,magfit,stream] [--first-seed 0] [--mounting-deg 0] [--yaw-error-deg X]
-        [--level-hard-iron] [--tilt-sd-deg S]
+        [--level-hard-iron] [--tilt-sd-deg S|auto|off]
         [--from-json a.json b.json --plot out.png]    # summarise and plot stored runs
 """
 from __future__ import annotations
@@ -90,14 +94,24 @@ def px4_power_compensation(t, mag, q, h_ned, current):
     return stage3.A, stage3.b, K, float(lag)
 
 
-def heading_errors(truth, rec, A, b, K, delay):
-    """Heading error (deg, per sample) of A^-1 (m_clean - b - K c(t - delay)) rotated to NED by the true attitude."""
+def delivered_matrix(A) -> np.ndarray:
+    """The correction matrix a calibration delivers: the symmetric polar factor P of A^-1 = Q P. The parameter
+    files (ArduPilot's DIA/ODI, PX4's scales and off-diagonals, calibrate.package_form's S) hold a symmetric
+    matrix; the rotation Q (the misalignment, which takes in the log's mean yaw error) is reported, not applied."""
+    _, sv, Vt = np.linalg.svd(np.linalg.inv(A))
+    return (Vt.T * sv) @ Vt
+
+
+def heading_errors(truth, rec, A, b, K, delay, delivered=True):
+    """Heading error (deg, per sample) of M (m_clean - b - K c(t - delay)) rotated to NED by the true attitude,
+    M = delivered_matrix(A) (delivered) or A^-1 (the whole fitted model, misalignment included)."""
     t, cur = rec.t, rec.aux["current"]
     R, h = truth["R_true"], truth["h_ned"]
     hb = np.einsum("kji,j->ki", R, h)
     m_clean = hb @ truth["A"].T + truth["b"] + np.interp(t - truth["delay_s"], t, cur)[:, None] * truth["K"]
     c_est = np.interp(t - (delay or 0.0), t, cur)
-    m_cal = (m_clean - b - c_est[:, None] * np.asarray(K)[None, :]) @ np.linalg.inv(A).T
+    M = delivered_matrix(A) if delivered else np.linalg.inv(A)
+    m_cal = (m_clean - b - c_est[:, None] * np.asarray(K)[None, :]) @ M.T
     n = np.einsum("kij,kj->ki", R, m_cal)
     err = np.degrees(np.arctan2(n[:, 1], n[:, 0]) - math.atan2(h[1], h[0]))
     return (err + 180.0) % 360.0 - 180.0
@@ -156,11 +170,11 @@ def level_hard_iron_error(truth, A, b, hz_mean) -> float:
 
 
 def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0, yaw_error_deg=None, level=False,
-        tilt_sd_deg=None):
+        tilt_sd_deg="auto"):
     """One flight and every method on it; mounting_deg: the magnetometer turned by this angle about the
     body's z axis (a mounting rotation: S becomes Rz S, so A = S^-1 is no longer symmetric);
     yaw_error_deg: the logged yaw's RMS error instead of the drawn 2-5 deg; level: record b_err_level too;
-    tilt_sd_deg: the roll/pitch error (deg) ours and ls correct for (None: not)."""
+    tilt_sd_deg: the roll/pitch error (deg) ours and ls correct for ("auto": estimated; None: not)."""
     rng = np.random.default_rng(1000 + seed)
     lat, lon, alt = PLACES[seed % len(PLACES)]
     ef = earth_field(lat, lon, alt, 2026.5)
@@ -196,13 +210,18 @@ def run(seed, disturbed, minutes, rate, methods=METHODS, mounting_deg=0.0, yaw_e
                 c = fit_flight(rec, earth=ef, robust=(name == "ours"), tilt_sd_deg=tilt_sd_deg)
                 A, b, K, delay = c.fit.A, c.hard_iron, c.current, c.delay_s
                 extra["misalignment_z_deg"] = float(c.misalignment_deg[2])
+                extra["tilt_sd_estimated_deg"] = c.fit.tilt_sd_estimated
+                extra["tilt_sd_applied_deg"] = c.fit.tilt_sd_deg
         if level:
             hz_mean = float(np.mean(np.einsum("kji,j->ki", truth["R_true"], truth["h_ned"])[:, 2]))
             extra["b_err_level"] = level_hard_iron_error(truth, A, b, hz_mean)
         out[name] = {"b_err": float(np.linalg.norm(b - truth["b"])),
                      "k_rel_err": float(np.linalg.norm(K - Kt) / np.linalg.norm(Kt)),
                      "delay_err_ms": 1e3 * abs((delay or 0.0) - tr["delay"]),
-                     **heading_figures(heading_errors(truth, rec, A, b, K, delay)), **extra,
+                     **heading_figures(heading_errors(truth, rec, A, b, K, delay)),
+                     "heading_rms_full_model_deg": heading_figures(heading_errors(truth, rec, A, b, K, delay,
+                                                                                  False))["heading_rms_deg"],
+                     **extra,
                      "cpu_s": time.process_time() - t0}
     return out
 
@@ -276,10 +295,10 @@ def make_plot(runs, path):
     if "ours" in methods:
         my = np.array([abs(r["log_yaw_error_mean_deg"]) for r in runs])
         hd = np.array([r["ours"]["heading_rms_deg"] for r in runs])
-        ha = np.array([r["ours"]["heading_rms_about_mean_deg"] for r in runs])
-        ax2.plot(my, hd, "o", label="heading RMS")
-        ax2.plot(my, ha, "s", mfc="none", label="heading RMS about its mean")
-        lim = max(1.2, float(np.max(np.concatenate([my, hd]))) * 1.1)
+        hf = np.array([r["ours"].get("heading_rms_full_model_deg", np.nan) for r in runs])
+        ax2.plot(my, hd, "o", label="heading RMS, calibration as delivered (S, b)")
+        ax2.plot(my, hf, "s", mfc="none", label="with the fitted misalignment applied too")
+        lim = max(1.2, float(np.nanmax(np.concatenate([my, hd, hf]))) * 1.1)
         ax2.plot([0, lim], [0, lim], "k:", lw=0.8, label="= |mean yaw error|")
         ax2.axhline(1.0, color="r", lw=0.7, ls="--")
         ax2.set_xlabel("|the log's mean yaw error over the flight| (deg)")
@@ -305,8 +324,10 @@ def main(argv=None):
                     help="the logged yaw's RMS error (deg) instead of one drawn in 2-5 deg per flight")
     ap.add_argument("--level-hard-iron", action="store_true",
                     help="also record the hard-iron error with the b_z/A_22 trade of level flight removed (module doc)")
-    ap.add_argument("--tilt-sd-deg", type=float, default=None,
-                    help="ours and ls correct for the attitude's roll/pitch error of this sd (deg; default: not)")
+    ap.add_argument("--tilt-sd-deg", default="auto",
+                    type=lambda v: v if v == "auto" else None if v == "off" else float(v),
+                    help="the attitude's roll/pitch error (deg) ours and ls correct for: a value, 'auto' (default: "
+                         "estimated from the residuals, as fit_flight) or 'off'")
     ap.add_argument("--json", help="write every run's figures here (rewritten after each run)")
     ap.add_argument("--from-json", nargs="+", help="summarise (and plot) these runs' JSON files instead of running")
     ap.add_argument("--plot", help="write the study's PNG here (matplotlib)")

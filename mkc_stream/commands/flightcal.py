@@ -31,9 +31,27 @@ def add_attitude_options(p):
     g.add_argument("--date", help="date for the Earth-field model (YYYY-MM-DD or a decimal year), default the log's")
     g.add_argument("--yaw-only", action="store_true",
                    help="ground robots: hard iron and horizontal soft iron from yaw alone, vertical terms held")
+    g.add_argument("--tilt-sd-deg", type=_tilt_sd, default="auto", metavar="DEG|auto|off",
+                   help="the attitude's roll/pitch error (deg, 1 sd) the fit corrects for; 'auto' (default) "
+                        "estimates it from the fit's residuals, 'off' does not correct; the batch fit only (docs/flight.md)")
     g.add_argument("--all-instances", action="store_true",
                    help="calibrate every magnetometer of the log and compare them (heading, field vs the model); "
                         "names the inconsistent one")
+
+
+def _tilt_sd(text):
+    """--tilt-sd-deg: a non-negative angle in deg, 'auto' or 'off' (None)."""
+    import argparse
+
+    if text in ("auto", "off"):
+        return None if text == "off" else text
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"expected an angle >= 0 in deg, 'auto' or 'off'; got {text!r}")
+    return v
 
 
 def wants_attitude(args, rec) -> bool:
@@ -58,14 +76,23 @@ def attitude_calibrate(args, rec, unit, counts, plots=None, plot_path=None, labe
 
         raise UsageError("--lat and --lon go together")
     try:
-        fc = fit_flight(rec, lat=args.lat, lon=args.lon, alt=args.alt, date=args.date, yaw_only=args.yaw_only)
+        fc = fit_flight(rec, lat=args.lat, lon=args.lon, alt=args.alt, date=args.date, yaw_only=args.yaw_only,
+                        tilt_sd_deg=getattr(args, "tilt_sd_deg", "auto"))
     except (MKCInputError, ValueError, ImportError) as exc:
         rejection = Rejection("not_observable" if isinstance(exc, MKCInputError) else "no_calibration", str(exc))
         return no_calibration_json(rejection, counts, method="mkc-em-attitude"), None, [status_line(rejection)]
     if plots is not None and getattr(args, "plot", None):
         plots.append((plot_path or args.plot, rec, fc, label))
     rejection = None
-    if unit == "uT" and math.isfinite(fc.scale) and abs(fc.scale - 1.0) > FIELD_TOLERANCE:
+    from ..flight.calibrate import YAW_ERROR_LIMIT_DEG
+
+    if fc.yaw_error_rms_deg is not None and fc.yaw_error_rms_deg > YAW_ERROR_LIMIT_DEG:
+        rejection = Rejection("rejected", f"the attitude's fitted yaw error is {fc.yaw_error_rms_deg:.1f} deg RMS (more "
+                                          f"than {YAW_ERROR_LIMIT_DEG:g}): the log's heading and the magnetometer "
+                                          "disagree beyond a wandering yaw error (a heading offset of the attitude or "
+                                          "a wrong declination?)", ("attitude_yaw",),
+                              {"yaw_error_rms_deg": fc.yaw_error_rms_deg})
+    elif unit == "uT" and math.isfinite(fc.scale) and abs(fc.scale - 1.0) > FIELD_TOLERANCE:
         rejection = Rejection("rejected", f"fitted field {fc.scale:.3f} x the Earth-field model (more than "
                                           f"{FIELD_TOLERANCE:.0%} from 1): wrong unit, position or date, or a "
                                           "disturbance that does not move with the vehicle",
@@ -98,7 +125,11 @@ def report_lines(fc, unit, rejection) -> list:
         lines.append(f"  throttle      : {fmt_vec(fc.throttle, unit)} at full throttle")
     if fc.delay_s is not None:
         lines.append(f"  delay         : {fc.delay_s * 1e3:.1f} ms (power signal to magnetometer)")
-    lines.append(f"  misalignment  : {fmt_vec(fc.misalignment_deg, 'deg')} (rotation vector, sensor to attitude frame)")
+    lines.append(f"  misalignment  : {fmt_vec(fc.misalignment_deg, 'deg')} (rotation vector, sensor to attitude frame; "
+                 "not in the calibration)")
+    if fc.fit.tilt_sd_deg:
+        how = "estimated from the residuals" if fc.fit.tilt_sd_estimated is not None else "as given"
+        lines.append(f"  tilt error    : {fc.fit.tilt_sd_deg:.2f} deg RMS in the log's roll/pitch ({how}), corrected for")
     lines.append(f"  samples       : {fc.samples} used, {fc.skipped} without attitude or power left out")
     if fc.held:
         lines.append(f"  held          : {', '.join(fc.held)} (not observable in this log: kept at their prior)")

@@ -123,7 +123,9 @@ def fit_attitude_baseline(rec, ok, *, earth=None, lat=None, lon=None, alt=0.0, d
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)         # an iteration cap: the fit's notes say it
-            fc = fit_flight(rec, earth=earth, lat=lat, lon=lon, alt=alt, date=date, power=())
+            # no tilt correction: the baseline leaves effects out on purpose, and its residuals would read them as
+            # the attitude's tilt error (flight/tilt_error.py)
+            fc = fit_flight(rec, earth=earth, lat=lat, lon=lon, alt=alt, date=date, power=(), tilt_sd_deg=None)
     except (MKCInputError, ValueError, np.linalg.LinAlgError) as exc:
         return None, {**base, "usable": False}, f"the attitude-aided fit failed: {exc}"
     r = fc.fit.residuals

@@ -22,6 +22,12 @@ QUAT = ("qw", "qx", "qy", "qz")
 #: the sensor gain is known to a few percent, so 10% means a wrong unit, a wrong field reference or a
 #: calibration that absorbed an unmodelled disturbance.
 FIELD_TOLERANCE = 0.10
+#: A fitted yaw error of the attitude beyond this RMS (deg; twice the yaw_error prior's 5 deg) is not the
+#: wandering error the first-order model holds: the log's heading and the magnetometer disagree more than
+#: that model can carry (a heading offset of several degrees under strong manoeuvres, a wrong declination),
+#: and the fit ran away along it (measured: 23 deg RMS and residuals of 7.5 uT on a flight whose logged yaw
+#: was turned by 4 deg; 0.7-0.9 deg where it fits).
+YAW_ERROR_LIMIT_DEG = 10.0
 
 
 @dataclass
@@ -45,6 +51,12 @@ class FlightCalibration:
     fit: VectorFit
     notes: list
 
+    @property
+    def yaw_error_rms_deg(self) -> float | None:
+        """RMS of the attitude's fitted yaw error (deg), None without the yaw-error term."""
+        y = self.fit.yaw_error_deg
+        return None if y is None or y.size == 0 else float(np.sqrt(np.mean(y * y)))
+
     def to_json(self) -> dict:
         """compensation and earth_field of docs/spec/machine-output.md, with the calibration's fields."""
         def lst(x):
@@ -60,6 +72,9 @@ class FlightCalibration:
                 "compensation": comp, "earth_field": None if self.earth is None else self.earth.to_json(),
                 "attitude_fit": {"scale_per_uT": None if not math.isfinite(self.scale) else float(self.scale),
                                  "misalignment_deg": lst(self.misalignment_deg), "held": list(self.held),
+                                 "tilt_error_sd_deg": self.fit.tilt_sd_deg,
+                                 "yaw_error_rms_deg": self.yaw_error_rms_deg,
+                                 "tilt_error_sd_estimated_deg": self.fit.tilt_sd_estimated,
                                  "observable": dict(self.observable), "vif": {k: float(v) for k, v in self.vif.items()},
                                  "samples": int(self.samples), "skipped": int(self.skipped), "notes": list(self.notes)}}
 
@@ -135,7 +150,7 @@ def earth_reference(rec, earth, lat, lon, alt, date, notes: list):
 
 def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power=None,
                robust=True, yaw_only=False, delay=None, max_delay=0.1, max_vif=None,
-               tilt_sd_deg=None) -> FlightCalibration:
+               tilt_sd_deg="auto") -> FlightCalibration:
     """Attitude-aided calibration of ``rec`` (module doc).
 
     earth: an earthfield.EarthField or an NED vector in uT (overrides the position); lat/lon/alt
@@ -144,7 +159,8 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     columns used as power signals when present (None: the current when present, else the
     throttle; both are usually nearly collinear, current = f(throttle)). delay: a fixed delay (s) instead of the search over
     [0, max_delay]. max_vif: observability threshold (vector_fit.MAX_VIF). tilt_sd_deg: the attitude's
-    stated roll/pitch error (deg, 1 sd), corrected for in the fit (vector_fit's module doc; None: not)."""
+    roll/pitch error (deg, 1 sd), corrected for in the fit (vector_fit's module doc): a stated value,
+    "auto" (estimated from the fit's residuals, tilt_error.py) or None (not corrected)."""
     from .vector_fit import MAX_VIF
 
     notes = []
@@ -199,6 +215,15 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
                      + ("yaw-only mode" if yaw_only else f"the flight does not tilt enough (VIF of h_z "
                                                         f"{f.vif['h_z']:.3g})")
                      + "; the hard iron's z carries the vertical gain's error times the vertical field")
+    if f.tilt_sd_estimated is not None:
+        notes.append(f"the attitude's roll/pitch error, estimated from the residuals: {f.tilt_sd_estimated:.2f} deg; "
+                     + ("the fit is corrected for it" if f.tilt_sd_deg else "no correction applied (none seen, or "
+                        "larger than the flight's tilt variation can carry)"))
+    y = f.yaw_error_deg
+    if y is not None and y.size and float(np.sqrt(np.mean(y * y))) > YAW_ERROR_LIMIT_DEG:
+        notes.append(f"the attitude's fitted yaw error is {float(np.sqrt(np.mean(y * y))):.1f} deg RMS, more than the "
+                     f"{YAW_ERROR_LIMIT_DEG:g} deg its model holds: the log's heading and the magnetometer disagree "
+                     "beyond a wandering error (a heading offset of the attitude, a wrong declination); not reliable")
     if ef is not None and math.isfinite(scale) and unit == "uT" and abs(scale - 1.0) > FIELD_TOLERANCE:
         notes.append(f"the fitted gain is {scale:.3f} sensor uT per model uT (more than {FIELD_TOLERANCE:.0%} from 1): "
                      "check the unit, the position/date, or local disturbances")

@@ -32,7 +32,10 @@ d_i = 1.4826 MAD of its residuals, sigma_i = START_SIGMA_ROBUST; one M-step, the
 theta moves less than em_tol (relative) and (sigma, d) by < 0.1%.
 robust=False gives plain (unweighted) least squares on the same model.
 
-The attitude's roll/pitch error (optional, tilt_sd_deg): the regressor h_k is computed from the logged
+The attitude's roll/pitch error (tilt_sd_deg: given, or "auto", estimated from the first fit's residuals
+by tilt_error.py from the robust fit's residuals and kernel weights, and the EM rerun corrected; least
+squares has no weights to keep the disturbances out of that estimate and is not corrected by "auto"):
+the regressor h_k is computed from the logged
 attitude, so it carries the error u_k = delta_k x h_k (delta_k the tilt error about the body's x and y,
 each of sd s rad), and least squares on an error-laden regressor shrinks the slopes (errors in
 variables): A_22, whose only information is the small tilt-driven variation of h_z, is pulled towards 0
@@ -41,7 +44,9 @@ expected contribution from each channel's normal matrix:
     X^T C_i X  ->  X^T C_i X - sum_k C_ki Sigma_k  (h block),
     Sigma_k = s^2 [[h_z^2, 0, -h_x h_z], [0, h_z^2, -h_y h_z], [-h_x h_z, -h_y h_z, h_x^2 + h_y^2]]
 (E[u u^T] for independent errors about x and y). It removes the expected shrinkage only; it needs the
-AHRS's stated roll/pitch accuracy s. Under the kernel weights it assumes the weights independent of u;
+roll/pitch error's sd s, stated or estimated (an estimated correction that would remove more than
+MAX_TILT_CORRECTION of the normal matrix's information in some direction, or whose refit loses its
+minimum, is not applied: the plain fit is kept and the estimate reported). Under the kernel weights it assumes the weights independent of u;
 they are not quite (a sample with a large u gets a smaller weight), so it over-corrects a little (measured
 in tests/test_flight_tilt_error.py with a white 2 deg error: b_z off by 2.76 uT without, -0.58 with).
 
@@ -85,6 +90,13 @@ MAX_VIF = 1000.0
 #: Level flight cannot tell a tilt misalignment from b_x, b_y: the held form gives the same field in
 #: level flight, so the heading is unaffected.
 MAX_VIF_TILT = 30.0
+#: The estimated tilt correction (tilt_sd_deg="auto") is applied only while it removes at most this fraction
+#: of the normal matrix's information along any direction (correction_fraction). Measured: 0.14% on a
+#: simulated flight with 0.3 deg of tilt error (1.6% expected at 1 deg, the fraction grows as its square),
+#: 0.5-1.3% on the three compasses of the real log171; with the current effect left out of the model
+#: (power=()), the estimate reads the unmodelled current as tilt error (1.4-2.8 deg) and would remove
+#: 3% (simulated) and 11-17% (log171), where the corrected fit became singular.
+MAX_TILT_CORRECTION = 0.05
 #: M-step iterations per point of a profile search (the point's objective needs no full convergence:
 #: the search starts each point from the fit at the current delay).
 PROFILE_ITER = 10
@@ -234,6 +246,22 @@ def _normal(P, C, g):
     return np.block([[Nq, Nqb], [Nqb.T, Nbb]]), np.concatenate([rq, rbeta])
 
 
+def correction_fraction(N_plain, N_corrected) -> float:
+    """The largest fraction of the normal matrix's information along any direction that the tilt correction
+    removes: max eig of N_plain^-1 (N_plain - N_corrected) (inf when N_plain is not positive definite). At 1
+    the corrected matrix is singular; near it corrected least squares divides by almost nothing."""
+    dg = np.sqrt(np.abs(np.diag(N_plain)))
+    if not np.all(dg > 0):
+        return math.inf
+    try:
+        L = np.linalg.cholesky(N_plain / np.outer(dg, dg))
+    except np.linalg.LinAlgError:
+        return math.inf
+    D = (N_plain - N_corrected) / np.outer(dg, dg)
+    Li = np.linalg.inv(L)
+    return float(np.max(np.linalg.eigvalsh(Li @ D @ Li.T)))
+
+
 def _solve_normal(Nz, rz):
     dg = np.sqrt(np.diag(Nz))
     if not np.all(dg > 0):
@@ -300,7 +328,8 @@ class VectorFitSettings:
     delay: float | None = None      # s; a fixed delay instead of the search
     yaw_knot_s: float | None = 10.0  # s; knot spacing of the yaw-error nuisance (None: no yaw error modelled)
     yaw_prior_deg: float = 5.0       # prior sd of the yaw error, deg
-    tilt_sd_deg: float | None = None  # the attitude's stated roll/pitch error sd, deg (None: not corrected)
+    tilt_sd_deg: float | str | None = None  # the attitude's roll/pitch error sd, deg; "auto": estimated
+    # from the fit's residuals (tilt_error.py); None: not corrected
 
 
 @dataclass
@@ -326,6 +355,8 @@ class VectorFit:
     delay_profile: list = field(default_factory=list)       # [(tau, J)]
     inclination_profile: list = field(default_factory=list)  # [(deg, J)]
     power_names: tuple = ()
+    tilt_sd_deg: float | None = None      # the roll/pitch error sd corrected for, deg (None: no correction)
+    tilt_sd_estimated: float | None = None  # the estimate from the residuals (tilt_sd_deg="auto"), deg
 
     def theta_sd(self, i, j):
         if self.cov is None:
@@ -448,9 +479,11 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
         raise MKCInputError(f"{t.shape[0]} samples are too few for the vector model")
     names = ["h_x", "h_y", "h_z", "1"] + [f"power:{n}" for n in (power_names or [f"c{j}" for j in range(n_c)])]
     basis = YawBasis(t, s.yaw_knot_s, s.yaw_prior_deg) if s.yaw_knot_s else None
-    if s.tilt_sd_deg is not None and not (math.isfinite(s.tilt_sd_deg) and s.tilt_sd_deg >= 0):
-        raise MKCInputError(f"tilt_sd_deg must be >= 0 (deg) or None; got {s.tilt_sd_deg!r}")
-    tilt_var = math.radians(s.tilt_sd_deg) ** 2 if s.tilt_sd_deg else None
+    auto_tilt = isinstance(s.tilt_sd_deg, str) and s.tilt_sd_deg == "auto"
+    if not (s.tilt_sd_deg is None or auto_tilt or (isinstance(s.tilt_sd_deg, (int, float))
+                                                   and math.isfinite(s.tilt_sd_deg) and s.tilt_sd_deg >= 0)):
+        raise MKCInputError(f"tilt_sd_deg must be >= 0 (deg), 'auto' or None; got {s.tilt_sd_deg!r}")
+    tilt_var = math.radians(s.tilt_sd_deg) ** 2 if (s.tilt_sd_deg and not auto_tilt) else None
 
     def design(h, tau):
         return np.concatenate([body_field(R, h), np.ones((t.shape[0], 1)), delayed(t, c0, tau)], axis=1)
@@ -505,6 +538,25 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
         P = problem(h, tau)
         z, sigma, d, r2, converged = _fit_at(P, s, z, sigma.copy(), d.copy())
         rounds += r2
+    tilt_est = None
+    if auto_tilt and s.robust:  # estimate the tilt error from this fit, then refit corrected (tilt_error.py)
+        from .tilt_error import estimate_tilt_sd_deg
+
+        E = _residuals(P, z)
+        W = _weights(E, sigma, d)
+        tilt_est = estimate_tilt_sd_deg(R, h, z[0].reshape(3, -1)[:, :3], E, W)
+        P_c = problem(h, tau)
+        P_c.tilt_var = math.radians(tilt_est) ** 2
+        C = W / (d ** 2)[None, :]
+        g = P.yaw_g(z[0]) if basis is not None else None
+        if tilt_est > 0 and correction_fraction(_normal(P, C, g)[0], _normal(P_c, C, g)[0]) <= MAX_TILT_CORRECTION:
+            try:
+                z_c, sigma_c, d_c, r3, conv_c = _fit_at(P_c, s, z, sigma.copy(), d.copy())
+            except MKCInputError:      # the weights moved and the corrected matrix lost its minimum: keep the plain fit
+                pass
+            else:
+                P, tilt_var, z, sigma, d, converged = P_c, P_c.tilt_var, z_c, sigma_c, d_c, conv_c
+                rounds += r3
     if not converged:
         warnings.warn("vector fit: stopped at an iteration cap; the last iterate is returned", UserWarning,
                       stacklevel=2)
@@ -526,4 +578,5 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
                      residuals=E, vif=dict(zip(names, map(float, vif_final))), held=held, observable=observable,
                      cov=cov, yaw_error_deg=None if basis is None else np.degrees(basis.eval(z[1])), n_em=rounds,
                      converged=converged, delay_profile=delay_profile, inclination_profile=incl_profile,
-                     power_names=tuple(power_names or ()))
+                     power_names=tuple(power_names or ()),
+                     tilt_sd_deg=None if not tilt_var else math.degrees(math.sqrt(tilt_var)), tilt_sd_estimated=tilt_est)
