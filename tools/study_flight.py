@@ -37,9 +37,10 @@ With --level-hard-iron each run also records b_err_level = |b - b_true + e_z (A_
 (uT, h_z the true body field's z): in level flight b_z and the vertical gain A_22 trade along a ridge
 (b_z + A_22 h_z is what the flight determines, VIF of h_z 200-700), and this figure is the hard-iron
 error with that trade removed, i.e. the error of the calibrated field at the flight's mean attitude.
---tilt-sd-deg S|auto|off: the attitude's roll/pitch error ours and ls correct for (corrected least squares,
-vector_fit.py): S deg as stated, estimated from the residuals (auto, the default, as fit_flight), or none;
-the simulated log's is 0.3 deg.
+--tilt-sd-deg S|auto|off: the attitude's roll/pitch error corrected for (corrected least squares,
+vector_fit.py): S deg as stated (ours and ls), estimated from the residuals (auto, the default, as
+fit_flight: ours only, least squares has no weights for the estimate), or none; the simulated log's is
+0.3 deg.
 
     python tools/study_flight.py --seeds 4 [--minutes 30 30] [--rate 10] [--json out.json] [--plot out.png]
         [--methods ours,ls,px4,magfit,stream] [--first-seed 0] [--mounting-deg 0] [--yaw-error-deg X]
@@ -326,8 +327,8 @@ def main(argv=None):
                     help="also record the hard-iron error with the b_z/A_22 trade of level flight removed (module doc)")
     ap.add_argument("--tilt-sd-deg", default="auto",
                     type=lambda v: v if v == "auto" else None if v == "off" else float(v),
-                    help="the attitude's roll/pitch error (deg) ours and ls correct for: a value, 'auto' (default: "
-                         "estimated from the residuals, as fit_flight) or 'off'")
+                    help="the attitude's roll/pitch error (deg) corrected for: a value (ours and ls), 'auto' "
+                         "(default: estimated from the residuals, as fit_flight; ours only) or 'off'")
     ap.add_argument("--json", help="write every run's figures here (rewritten after each run)")
     ap.add_argument("--from-json", nargs="+", help="summarise (and plot) these runs' JSON files instead of running")
     ap.add_argument("--plot", help="write the study's PNG here (matplotlib)")
