@@ -34,9 +34,11 @@ LAG = 1
 
 def tilt_direction(R, h_ned) -> np.ndarray:
     """n_k (N, 3) of the module doc: the unit body-frame direction only a tilt error moves the field along."""
+    from .vector_fit import body_field
+
     h_ned = np.asarray(h_ned, dtype=np.float64)
-    h = np.einsum("kji,j->ki", R, h_ned)
-    g = np.einsum("kji,j->ki", R, np.cross([0.0, 0.0, 1.0], h_ned))
+    h = body_field(R, h_ned)
+    g = body_field(R, np.cross([0.0, 0.0, 1.0], h_ned))
     n = np.cross(h, g)
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
