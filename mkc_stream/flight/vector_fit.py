@@ -579,4 +579,5 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
                      cov=cov, yaw_error_deg=None if basis is None else np.degrees(basis.eval(z[1])), n_em=rounds,
                      converged=converged, delay_profile=delay_profile, inclination_profile=incl_profile,
                      power_names=tuple(power_names or ()),
-                     tilt_sd_deg=None if not tilt_var else math.degrees(math.sqrt(tilt_var)), tilt_sd_estimated=tilt_est)
+                     tilt_sd_deg=None if not tilt_var else (tilt_est if auto_tilt else float(s.tilt_sd_deg)),
+                     tilt_sd_estimated=tilt_est)
