@@ -15,6 +15,9 @@ checkpoint records are compared:
   board must take every discrete decision of the host (checkpoints, E-step counts, statuses,
   acceptance, reasons) and give the same calibrations within tolerances: double 1e-10 relative
   (measured <= 8e-14), float 1e-4 (measured <= 6e-8), theta in double 1e-5 (measured <= 1.1e-6).
+- the all-float build on the board against the golden double reference (the acceptance line on the
+  target's own arithmetic): the same decisions and accepted calibrations within 1e-4; one vector,
+  syn_s4009_b25_pool_refit, departs on newlib's libm and is a strict expected failure.
 
 Skipped, saying why, without arm-none-eabi-gcc (Debian: gcc-arm-none-eabi, libnewlib-arm-none-eabi)
 or qemu-system-arm (qemu-system-arm).
@@ -236,3 +239,38 @@ def test_a_bad_input_file_is_refused_on_the_board(harness, tmp_path):
     assert proc.returncode != 0
     assert "cannot read mkc_in.bin" in proc.stdout + proc.stderr
     assert not (tmp_path / "mkc_out.bin").exists()
+
+
+def accepted_differences(recs, g):
+    """Largest relative differences of the board's accepted checkpoints from the golden double reference:
+    theta max |dtheta| / max |theta|, b |db| / F, S |dS|, F |dF| / F (those of test_float_precision.py)."""
+    acc = (g["accepted"] == 1) & (recs[:, O_ACCEPTED] == 1)
+    th, F = g["theta"][acc], np.abs(g["field"][acc]).reshape(-1)
+    return {"theta": float(np.max(np.abs(recs[acc, O_THETA:O_THETA + 9] - th)) / float(np.max(np.abs(th)))),
+            "b": float(np.max(np.abs(recs[acc, O_HARD:O_HARD + 3] - g["hard_iron"][acc]) / F[:, None])),
+            "S": float(np.max(np.abs(recs[acc, O_SOFT:O_SOFT + 9] - g["soft_iron"][acc].reshape(-1, 9)))),
+            "F": float(np.max(np.abs(recs[acc, O_FIELD] - g["field"][acc].reshape(-1)) / F))}, int(acc.sum())
+
+
+#: syn_s4009_b25_pool_refit departs on the board (newlib's expf, logf, expm1f, log1pf) though not on the
+#: host (glibc): from sample 2386, in an unaccepted stretch of 25% bursts, the float E-step's d moves off
+#: the double one (0.1591 against 0.1574 at sample 2578) and the accepted calibrations that follow differ
+#: by up to 1.6e-2 (theta), 4.6e-4 (b), 1.2e-3 (S), 2.6e-4 (F). The double build on the same inputs
+#: rounded to float moves by 5.5e-8: the departure is the float arithmetic's, not the data's conditioning.
+BOARD_ALL_FLOAT = ["syn_s3_b25", pytest.param("syn_s4009_b25_pool_refit", marks=pytest.mark.xfail(
+    strict=True, reason="the all-float E-step departs from the double reference on newlib's libm (see above)"))]
+
+
+@pytest.mark.parametrize("name", BOARD_ALL_FLOAT)
+def test_board_all_float_follows_the_double_reference(harness, name, tmp_path):
+    """The acceptance line on the target's own arithmetic: the all-float build on the emulated M4F makes
+    the reference's decisions and its accepted calibrations are within 1e-4 of the golden double ones."""
+    write_input(name, tmp_path / "mkc_in.bin")
+    dev = run_board(harness, "an386", "floatonly", tmp_path)[:-1]
+    with np.load(GV.GOLDEN_DIR / VECTORS[name]["file"]) as z:
+        g = {k: z[k] for k in ("accepted", "theta", "hard_iron", "soft_iron", "field")}
+    assert len(dev) == len(g["accepted"])
+    np.testing.assert_array_equal(dev[:, O_ACCEPTED], g["accepted"])
+    diffs, n = accepted_differences(dev, g)
+    assert n >= 30
+    assert max(diffs.values()) <= 1e-4, diffs

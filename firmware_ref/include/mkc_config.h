@@ -78,6 +78,13 @@ typedef float mkc_acc;
 #endif
 #endif
 
+/* MKC_ALL_FLOAT: no double arithmetic anywhere (the build for an FPU without double) */
+#if defined(MKC_USE_FLOAT) && !MKC_ACC_DOUBLE && !MKC_ESTEP_DOUBLE
+#define MKC_ALL_FLOAT 1
+#else
+#define MKC_ALL_FLOAT 0
+#endif
+
 /* arithmetic type of the E-step (objective, normaliser, BFGS) */
 #if MKC_ESTEP_DOUBLE
 typedef double mkc_ereal;

@@ -99,7 +99,7 @@ void mkc__calibration_from_geometry(const mkc__geometry *g, mkc_creal b[3], mkc_
         mkc_creal r[3];
         for (k = 0; k < 3; k++)
             r[k] = sqrtf(lam[k]);
-        f = CR(1.0) / cbrtf(r[0] * r[1] * r[2]);
+        f = CR(1.0) / MKC_CBRTF(r[0] * r[1] * r[2]);
         for (i = 0; i < 3; i++)
             for (k = 0; k < 3; k++)
                 P[i][k] = f * (Q[i][k] * r[k]);

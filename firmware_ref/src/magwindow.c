@@ -22,7 +22,11 @@ int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
     z = mkc__min_r(mkc__max_r(vz / r, RC(-1.0)), RC(1.0));
     band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS));
     band = band < MKC_N_BANDS - 1 ? band : MKC_N_BANDS - 1;
-    lon = MKC_ATAN2_R(vy, vx) + RC(MKC_PI);
+#if MKC_SECTOR_BY_COMPARISON
+    if (vx != RC(0.0) && vy != RC(0.0))
+        return band * MKC_N_SECTORS + mkc__sector_of(vx, vy);
+#endif
+    lon = MKC_ATAN2_AXES_R(vy, vx) + RC(MKC_PI);
     sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
     sector = sector < MKC_N_SECTORS - 1 ? sector : MKC_N_SECTORS - 1;
     return band * MKC_N_SECTORS + sector;

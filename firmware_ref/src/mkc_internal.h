@@ -65,6 +65,29 @@ double mkc__reason_value(float x);   /* quality.c */
 
 #define MKC_PI 3.141592653589793238462643383279502884
 
+/* mkc_acc and mkc_real are the same type (double build, all-float build): a copy between them is a
+ * plain copy */
+#if !defined(MKC_USE_FLOAT) || MKC_ALL_FLOAT
+#define MKC_ACC_IS_REAL 1
+#else
+#define MKC_ACC_IS_REAL 0
+#endif
+
+/* Cells' sectors by comparisons instead of atan2 where the arithmetic is float (stats.c
+ * mkc__sector_of, for x and y both non-zero). MKC_ATAN2_AXES_R(y, x) is atan2 where that is not so:
+ * in the all-float build fmath.c's exact values for a zero x or y, the only ones it is asked. */
+#if (MKC_CREAL_FLOAT || MKC_ALL_FLOAT) && MKC_N_SECTORS == 12
+#define MKC_SECTOR_BY_COMPARISON 1
+int mkc__sector_of(float x, float y);   /* stats.c */
+#else
+#define MKC_SECTOR_BY_COMPARISON 0
+#endif
+#if MKC_ALL_FLOAT && MKC_SECTOR_BY_COMPARISON
+#define MKC_ATAN2_AXES_R(y, x) mkc__atan2f_axes(y, x)
+#else
+#define MKC_ATAN2_AXES_R(y, x) MKC_ATAN2_R(y, x)
+#endif
+
 /* The reference's 1e-300 floors (below them a quantity is "zero"); FLT_MIN-sized in a float type. */
 #if MKC_ACC_DOUBLE
 #define MKC_TINY_ACC 1e-300

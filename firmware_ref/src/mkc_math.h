@@ -55,4 +55,13 @@
 #define MKC_LOG_E(x) MKC__FN_E(log)(x)
 #define MKC_LOG1P_E(x) MKC__FN_E(log1p)(x)
 
+#if MKC_ALL_FLOAT
+/* the all-float build's own functions (fmath.c) */
+float mkc__cbrtf(float x);
+float mkc__atan2f_axes(float y, float x);
+#define MKC_CBRTF(x) mkc__cbrtf(x)
+#else
+#define MKC_CBRTF(x) cbrtf(x)
+#endif
+
 #endif /* MKC_MATH_H */

@@ -97,14 +97,14 @@ mkc_real mkc__mad_about_median(const mkc_real *x, int n, mkc_real *work, mkc_rea
     return RC(MKC_MAD_SCALE) * mkc__median(work, n);
 }
 
-#if MKC_CREAL_FLOAT && MKC_N_SECTORS == 12
+#if MKC_SECTOR_BY_COMPARISON
 /* The sector of (x, y), both non-zero, by comparisons instead of atan2: sector k holds the
  * longitudes atan2(y, x) in [-180 + 30 k, -150 + 30 k) degrees, so within each quadrant the two
  * boundaries are at 30 and 60 degrees from the x axis, i.e. where |y| = |x| / sqrt(3) and
  * |y| = sqrt(3) |x| (ties as the atan2 expression resolves them). As exact as atan2f (the comparisons
  * round at 1 ulp; a direction that close to a boundary is either side in float anyway), and a
  * tenth of its cost: the quality figures and the switching test take a cell per window sample. */
-static int sector_of(float x, float y)
+int mkc__sector_of(float x, float y)
 {
     const float r3 = 1.7320508f;                 /* sqrt(3) */
     if (y > 0.0f) {
@@ -123,14 +123,14 @@ int mkc__unit_direction_cell(mkc_real ux, mkc_real uy, mkc_real uz)
 {
     mkc_real z = mkc__min_r(mkc__max_r(uz, RC(-1.0)), RC(1.0));
     int band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS)), sector;
-#if MKC_CREAL_FLOAT && MKC_N_SECTORS == 12
+#if MKC_SECTOR_BY_COMPARISON
     if (ux != RC(0.0) && uy != RC(0.0)) {
-        sector = sector_of(ux, uy);
+        sector = mkc__sector_of(ux, uy);
     } else
 #endif
     {
         /* atan2 (in the all-float build only for a zero x or y: its signed zeros) */
-        mkc_real lon = MKC_ATAN2_R(uy, ux) + RC(MKC_PI);
+        mkc_real lon = MKC_ATAN2_AXES_R(uy, ux) + RC(MKC_PI);
         sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
     }
     band = band < MKC_N_BANDS - 1 ? band : MKC_N_BANDS - 1;

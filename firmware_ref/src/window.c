@@ -229,15 +229,19 @@ static void row_update2_residual(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_
  * the factor the tracking steps use (age 0), or are marked invalid. */
 static int solve_window(mkc_core_t *c, mkc_acc *cond)
 {
-    int p, q, j, st, n = c->cfg.n;
+    int p, q, st, n = c->cfg.n;
     for (p = 0; p < n; p++)
         for (q = p + 1; q < n; q++)
             c->A[p][q] = c->A[q][p];
     st = mkc__spd_solve((const mkc_acc(*)[MKC_N])c->A, c->b, c->xs, c->L, c->D, n, cond);
     c->counters.factors += 1;
     if (st == MKC_OK) {
-        for (j = 0; j < n; j++)
-            c->theta[j] = (mkc_real)c->xs[j];
+#if defined(__GNUC__) && MKC_ACC_IS_REAL
+        __builtin_memcpy(c->theta, c->xs, (size_t)n * sizeof c->theta[0]);   /* not memmove: see mkc__rebuild */
+#else
+        for (p = 0; p < n; p++)
+            c->theta[p] = (mkc_real)c->xs[p];
+#endif
         c->counters.factor_age = 0;
     } else {
         c->counters.factor_age = -1;
@@ -337,9 +341,16 @@ int mkc__rebuild(mkc_core_t *c)
     mkc_acc pc[4];
     for (rnd = 0; rnd < c->cfg.fp_rounds; rnd++) {
         mkc_acc wsum = AC(0.0), cond, num = AC(0.0), den = AC(0.0);
+        /* theta copied with memcpy, which every firmware links: as a loop, GCC makes it a call to
+         * memmove, which the library would be alone to need (0.25 KB) */
+#if defined(__GNUC__)
+        __builtin_memcpy(c->tprev, c->theta, (size_t)n * sizeof c->theta[0]);
+#else
+        for (p = 0; p < n; p++)
+            c->tprev[p] = c->theta[p];
+#endif
         for (p = 0; p < n; p++) {
             c->b[p] = AC(0.0);
-            c->tprev[p] = c->theta[p];
             for (q = 0; q < n; q++)
                 c->A[p][q] = AC(0.0);
         }
