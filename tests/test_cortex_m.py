@@ -17,7 +17,7 @@ checkpoint records are compared:
   (measured <= 8e-14), float 1e-4 (measured <= 6e-8), theta in double 1e-5 (measured <= 1.1e-6).
 - the all-float build on the board against the golden double reference (the acceptance line on the
   target's own arithmetic): the same decisions and accepted calibrations within 1e-4; one vector,
-  syn_s4009_b25_pool_refit, departs on newlib's libm and is a strict expected failure.
+  syn_s4009_b25_pool_refit, departs on newlib's libm and is a strict expected failure (--runslow).
 
 Skipped, saying why, without arm-none-eabi-gcc (Debian: gcc-arm-none-eabi, libnewlib-arm-none-eabi)
 or qemu-system-arm (qemu-system-arm).
@@ -257,8 +257,9 @@ def accepted_differences(recs, g):
 #: the double one (0.1591 against 0.1574 at sample 2578) and the accepted calibrations that follow differ
 #: by up to 1.6e-2 (theta), 4.6e-4 (b), 1.2e-3 (S), 2.6e-4 (F). The double build on the same inputs
 #: rounded to float moves by 5.5e-8: the departure is the float arithmetic's, not the data's conditioning.
-BOARD_ALL_FLOAT = ["syn_s3_b25", pytest.param("syn_s4009_b25_pool_refit", marks=pytest.mark.xfail(
-    strict=True, reason="the all-float E-step departs from the double reference on newlib's libm (see above)"))]
+#: (It runs with --runslow, to keep the default suite inside its time budget.)
+BOARD_ALL_FLOAT = ["syn_s3_b25", pytest.param("syn_s4009_b25_pool_refit", marks=[pytest.mark.slow, pytest.mark.xfail(
+    strict=True, reason="the all-float E-step departs from the double reference on newlib's libm (see above)")])]
 
 
 @pytest.mark.parametrize("name", BOARD_ALL_FLOAT)
