@@ -107,6 +107,7 @@ static void row_update(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *x, m
     }
 }
 
+#if !MKC_ALL_FLOAT
 /* Four consecutive channel-rows of eq. (15) in one pass over A, b: each element receives the four
  * terms in row order, exactly the additions of four row_update calls (same operations, same order,
  * same results), with one load and store of A per four rows instead of four. */
@@ -149,6 +150,41 @@ static void row_update4(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_real *con
         }
     }
 }
+#endif
+
+#if MKC_ALL_FLOAT
+/* The all-float build's rebuild sums: A += c x x^T (lower triangle), b += c x y with each entry's
+ * rounding carried in Kahan's compensation (Alo packed by rows, blo; the sum is entry - carry, folded
+ * in by fold_carries), so each entry is within ~2 ulps of the exact sum of its rounded terms whatever
+ * the window's length (Kahan 1965). Plain float sums of W rows err by up to ~W ulps of the terms'
+ * size, and a window's off-diagonal moments nearly cancel; the double reference's calibration moves
+ * by 10-130 times the relative error of A and b's entries, which left the all-float build's
+ * free-running calibration on the last bits of libm, and blocks of 4 or 16 rows were not enough
+ * (firmware_ref/README.md, "The float build"). */
+static void row_update_compensated(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, float *Alo, float *blo, const mkc_real *x,
+                                   mkc_real y, mkc_acc c, int n)
+{
+    int p, q, k = 0;
+    for (p = 0; p < n; p++) {
+        float xp = x[p] * c;
+        mkc__kahan_add_f(&b[p], &blo[p], xp * y);
+        for (q = 0; q <= p; q++, k++)
+            mkc__kahan_add_f(&A[p][q], &Alo[k], xp * x[q]);
+    }
+}
+
+static void fold_carries(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const float *Alo, const float *blo, int n)
+{
+    int p, q, k = 0;
+    for (p = 0; p < n; p++) {
+        b[p] -= blo[p];
+        for (q = 0; q <= p; q++, k++)
+            A[p][q] -= Alo[k];
+    }
+}
+
+#define MKC_N_LOWER (MKC_N * (MKC_N + 1) / 2)
+#endif
 
 /* Two consecutive channel-rows (the per-sample "- old row, + new row": row_update's additions for
  * row 0 then row 1, in that order per element) fused with the tracking step's residual sums over
@@ -334,11 +370,18 @@ int mkc__rebuild(mkc_core_t *c)
     int n = c->cfg.n, m = c->cfg.m;
     int count = (int)c->counters.count;
     int status = MKC_NOT_CONVERGED, rnd, p, q, s, i, j, st, k;
+#if MKC_ALL_FLOAT
+    /* each row is added with compensation as it comes (row_update_compensated); buf holds the
+     * recomputed features of a magnetometer window */
+    mkc_real buf[1][MKC_N];
+    float Alo[MKC_N_LOWER], blo[MKC_N];
+#else
     /* up to four pending rows (c != 0) are added to A, b in one pass (row_update4); buf holds the
      * recomputed features of a magnetometer window, one buffer per pending row */
     mkc_real buf[4][MKC_N], py[4];
     const mkc_real *px[4];
     mkc_acc pc[4];
+#endif
     for (rnd = 0; rnd < c->cfg.fp_rounds; rnd++) {
         mkc_acc wsum = AC(0.0), cond, num = AC(0.0), den = AC(0.0);
         /* theta copied with memcpy, which every firmware links: as a loop, GCC makes it a call to
@@ -355,6 +398,12 @@ int mkc__rebuild(mkc_core_t *c)
                 c->A[p][q] = AC(0.0);
         }
         k = 0;
+#if MKC_ALL_FLOAT
+        for (p = 0; p < MKC_N_LOWER; p++)
+            Alo[p] = 0.0f;
+        for (p = 0; p < n; p++)
+            blo[p] = 0.0f;
+#endif
         if (c->defer_weights)
             c->defer_weights = 2;
         for (s = 0; s < count; s++) {
@@ -370,6 +419,13 @@ int mkc__rebuild(mkc_core_t *c)
                 cc = w * (RC(1.0) / (c->d[i] * c->d[i]));
                 if (!c->defer_weights)
                     c->C[s][i] = cc;
+#if MKC_ALL_FLOAT
+                if (cc != RC(0.0))
+                    row_update_compensated(c->A, c->b, Alo, blo, x, y, (mkc_acc)cc, n);
+            }
+        }
+        fold_carries(c->A, c->b, Alo, blo, n);
+#else
                 if (cc != RC(0.0)) {
                     px[k] = x;
                     py[k] = y;
@@ -383,6 +439,7 @@ int mkc__rebuild(mkc_core_t *c)
         }
         for (j = 0; j < k; j++)           /* the last < 4 rows, in order */
             row_update(c->A, c->b, px[j], py[j], pc[j], n);
+#endif
         if (wsum < (mkc_acc)n) {
             /* fewer effective equations than unknowns: the kernel lost the data (a bad theta) */
             c->counters.singular += 1;
@@ -539,6 +596,13 @@ static int initialise_window(mkc_core_t *c)
     int p, q, s, i, j, st;
     mkc_acc cond;
     mkc_real buf[MKC_N];
+#if MKC_ALL_FLOAT
+    float Alo[MKC_N_LOWER], blo[MKC_N];
+    for (p = 0; p < MKC_N_LOWER; p++)
+        Alo[p] = 0.0f;
+    for (p = 0; p < n; p++)
+        blo[p] = 0.0f;
+#endif
     for (p = 0; p < n; p++) {
         c->b[p] = AC(0.0);
         for (q = 0; q < n; q++)
@@ -547,9 +611,16 @@ static int initialise_window(mkc_core_t *c)
     for (s = 0; s < count; s++) {
         for (i = 0; i < m; i++) {
             mkc_real wd = c->d[i] > RC(0.0) ? RC(1.0) * (RC(1.0) / (c->d[i] * c->d[i])) : RC(1.0);
+#if MKC_ALL_FLOAT
+            row_update_compensated(c->A, c->b, Alo, blo, row_at(c, s, i, buf), target(c, s, i), (mkc_acc)wd, n);
+#else
             row_update(c->A, c->b, row_at(c, s, i, buf), target(c, s, i), (mkc_acc)wd, n);
+#endif
         }
     }
+#if MKC_ALL_FLOAT
+    fold_carries(c->A, c->b, Alo, blo, n);
+#endif
     st = solve_window(c, &cond);
     c->fit.cond = (mkc_real)cond;
     if (st != MKC_OK) {
