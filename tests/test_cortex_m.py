@@ -254,7 +254,8 @@ def accepted_differences(recs, g):
 
 #: the vectors that accept and fit the board (W <= 256): syn_s4009_b25_pool_refit is the one that
 #: departed (by 1.6e-2 on theta, 4.6e-4 on b/F) before the all-float rebuild summed A and b with
-#: compensation; the others run with --runslow, to keep the default suite inside its time budget
+#: compensation, and whose result still turns on libm's last bits (firmware_ref/README.md, "The float
+#: build"); the others run with --runslow, to keep the default suite inside its time budget
 BOARD_ALL_FLOAT = ["syn_s3_b25", "syn_s4009_b25_pool_refit"] + [
     pytest.param(v, marks=pytest.mark.slow)
     for v in ("syn_s1_b00", "syn_s2_b10", "syn_s4_b10_w128_k16", "syn_s7_b10_spikes", "syn_s3299_b25_wrong_mode",
