@@ -419,14 +419,10 @@ int mkc__rebuild(mkc_core_t *c)
                 cc = w * (RC(1.0) / (c->d[i] * c->d[i]));
                 if (!c->defer_weights)
                     c->C[s][i] = cc;
-#if MKC_ALL_FLOAT
-                if (cc != RC(0.0))
-                    row_update_compensated(c->A, c->b, Alo, blo, x, y, (mkc_acc)cc, n);
-            }
-        }
-        fold_carries(c->A, c->b, Alo, blo, n);
-#else
                 if (cc != RC(0.0)) {
+#if MKC_ALL_FLOAT
+                    row_update_compensated(c->A, c->b, Alo, blo, x, y, (mkc_acc)cc, n);
+#else
                     px[k] = x;
                     py[k] = y;
                     pc[k] = (mkc_acc)cc;
@@ -434,9 +430,13 @@ int mkc__rebuild(mkc_core_t *c)
                         row_update4(c->A, c->b, px, py, pc, n);
                         k = 0;
                     }
+#endif
                 }
             }
         }
+#if MKC_ALL_FLOAT
+        fold_carries(c->A, c->b, Alo, blo, n);
+#else
         for (j = 0; j < k; j++)           /* the last < 4 rows, in order */
             row_update(c->A, c->b, px[j], py[j], pc[j], n);
 #endif
