@@ -525,6 +525,27 @@ def test_can_log_byte_flips(tmp_path, logs, suffix, flips):
         assert seen > 0 or d.get("stopped_early")
 
 
+def test_csv_log_header_joined_to_the_first_frame_is_a_counted_loss(tmp_path, logs):
+    """The CSV header's line ending flipped to a vertical tab (byte 55 ^ 1, found by the byte-flip
+    test above) joins the first frame to the header line, which python-can's reader skips unread:
+    the frame is lost, and must be counted as a bad frame with the reason, not silently."""
+    data = bytearray(logs[".csv"][0])
+    assert data[55:56] == b"\n"
+    data[55] ^= 1
+    path = tmp_path / "joined.csv"
+    path.write_bytes(bytes(data))
+    out, c, d = read_log(path)
+    assert [s.seq for s in out] == list(range(1, N_FRAMES))
+    assert c["bad_frames"] == 1 and "not python-can's CSV header" in d["bad_reasons"][0]
+    out, c, _ = read_log(_write(tmp_path / "clean.csv", logs[".csv"][0]))
+    assert len(out) == N_FRAMES and c["bad_frames"] == 0
+
+
+def _write(path, data):
+    path.write_bytes(data)
+    return path
+
+
 def test_comment_lines_accumulate_and_never_conflict(tmp_path):
     """Free-text lines and `comment:` keys are notes: joined in order (a KeyError before), while any
     other key given twice with different values is refused."""

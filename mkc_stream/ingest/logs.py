@@ -21,6 +21,7 @@ import gzip
 import logging
 import math
 import pathlib
+import re
 import struct
 import sys
 import zlib
@@ -153,6 +154,9 @@ class RecordingSource(BaseSource):
 #: characters of one line of a text CAN log (python-can's lines are < 200); a longer line is
 #: damage, skipped in bounded memory and counted
 MAX_LOG_LINE = 4096
+#: the first line of python-can's CSV log: column names only ("timestamp,arbitration_id,...,data";
+#: another column set is still a header, a frame's values are not)
+_CSV_HEADER_LINE = re.compile(r"[a-z_]+(,[a-z_]+)*")
 _TEXT_READERS = {".log": "CanutilsLogReader", ".asc": "ASCReader", ".trc": "TRCReader", ".csv": "CSVReader"}
 
 
@@ -163,7 +167,9 @@ class _TextLines:
     as a bad frame between the frames around it. ``kind`` is ``"bad"`` for a line longer than
     MAX_LOG_LINE (skipped), ``"cut"`` for a last line without its line ending (held back: every
     python-can writer ends each record with one, so the file was cut mid-record) or a gzip stream
-    that ends early, and ``"stop"`` for a corrupt gzip stream (the lines end there). Universal
+    that ends early, and ``"stop"`` for a corrupt gzip stream (the lines end there). A python-can CSV
+    log whose first line is not a header (column names only) is ``"bad"`` too (the reader skips that line
+    unread, with any frame a damaged line ending joined to it). Universal
     newlines; undecodable bytes are replaced (the reader then refuses the line).
     """
 
@@ -211,6 +217,11 @@ class _TextLines:
                     self._end(f"line {self.lineno}: the last line has no line ending (the file was cut "
                               f"mid-record): {excerpt(line.strip(), 60)}", "cut")
                 break
+            if self._kind == ".csv" and self.lineno == 1 and not _CSV_HEADER_LINE.fullmatch(line.strip()):
+                # python-can's CSV reader drops its first line unread, as the header: a damaged line
+                # ending can have joined the first frame to it
+                self.damage.append((f"line 1: not python-can's CSV header (its reader skips the line, and "
+                                    f"any frame in it): {excerpt(line.strip(), 80)}", "bad"))
             self._expect(line.strip().lower())
             return line
         self._expect("")
