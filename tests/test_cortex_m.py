@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import pathlib
 import shutil
-import struct
 import subprocess
 import sys
 
@@ -42,6 +41,9 @@ QEMU_DIR = FIRMWARE_DIR / "build" / "qemu"
 sys.path.insert(0, str(REPO_ROOT / "tools"))
 
 import golden as GV  # noqa: E402  (tools/golden.py: the vectors' files)
+import replay_harness as RH  # noqa: E402  (tools/replay_harness.py: the harness's files and runs)
+from replay_harness import (O_A, O_ACCEPTED, O_C0S0, O_D, O_ESTEPS, O_FIELD, O_HARD,  # noqa: E402
+                            O_HAS_TRIAL, O_SEEN, O_SIGMA, O_SOFT, O_STATUS, O_THETA, DISCRETE)
 
 
 def _missing_tools():
@@ -59,20 +61,10 @@ INDEX = json.loads((GV.GOLDEN_DIR / "index.json").read_text())
 VECTORS = {v["name"]: v for v in INDEX["vectors"]}
 # vectors whose window fits the firmware capacity (MKC_W = 256): W = 256, K = 32 and W = 128, K = 16
 NAMES = ["syn_s3_b25", "syn_s4_b10_w128_k16"]
-BOARDS = {"an386": "mps2-an386", "an505": "mps2-an505"}   # Cortex-M4F, Cortex-M33
 #: the board runs: the M4F in every test run; the M33 (the same results, measured) with --runslow,
 #: to keep the default suite inside its time budget
 BOARD_PARAMS = [pytest.param("an386", id="an386"), pytest.param("an505", id="an505", marks=pytest.mark.slow)]
 QEMU_TIMEOUT_S = 300
-
-# the record layout of firmware_ref/target/replay_main.c (doubles)
-IN_MAGIC, IO_VERSION = 0x49434B4D, 1
-N_QUALITY = 7
-O_SEEN, O_ESTEPS, O_STATUS, O_ACCEPTED, O_HAS_TRIAL, O_REASON, O_THETA = range(7)
-O_SIGMA, O_D, O_A, O_C0S0 = 15, 16, 17, 18
-O_HARD, O_SOFT, O_FIELD, O_QUALITY = 22, 25, 34, 35
-RECORD = O_QUALITY + N_QUALITY
-DISCRETE = slice(O_SEEN, O_REASON + 1)
 
 
 @pytest.fixture(scope="module")
@@ -86,42 +78,22 @@ def harness():
 
 
 def write_input(name, path):
-    """The vector's stored input as the harness's mkc_in.bin (header, then T x 3 little-endian doubles)."""
+    """The vector's stored input as the harness's mkc_in.bin, with the vector's configuration."""
     v = VECTORS[name]
     inp = GV.stored_input(v)
     cfg = v["config"]
-    mags = np.ascontiguousarray(inp["mags"], dtype="<f8")
-    policy = {"fifo": 0, "direction": 1}[cfg["policy"]]
-    head = struct.pack("<8i", IN_MAGIC, IO_VERSION, cfg["window"], cfg["estep_every"], policy,
-                       int(inp["unit"] == "uT"), 0, len(mags))
-    path.write_bytes(head + mags.tobytes())
-
-
-def read_output(path):
-    recs = np.fromfile(path, dtype="<f8")
-    assert recs.size % RECORD == 0, f"{path}: {recs.size} doubles, not whole records"
-    recs = recs.reshape(-1, RECORD)
-    assert recs[-1, O_SEEN] == -1.0, "the final record is missing"
-    return recs
+    RH.write_input(path, inp["mags"], cfg["window"], cfg["estep_every"], cfg["policy"], inp["unit"] == "uT")
 
 
 def run_host(harness, precision, workdir):
-    proc = subprocess.run([str(harness / f"host_{precision}")], cwd=workdir, capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    return read_output(workdir / "mkc_out.bin")
+    return RH.run_host(harness, precision, workdir)
 
 
 def run_board(harness, board, precision, workdir):
-    (workdir / "mkc_out.bin").unlink(missing_ok=True)
-    args = ["qemu-system-arm", "-M", BOARDS[board], "-nographic", "-monitor", "none", "-serial", "none",
-            "-semihosting-config", "enable=on,target=native", "-kernel", str(harness / f"{board}_{precision}.elf")]
     try:
-        proc = subprocess.run(args, cwd=workdir, capture_output=True, text=True, timeout=QEMU_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"{board} {precision}: no exit within {QEMU_TIMEOUT_S} s")
-    assert proc.returncode == 0, f"{board} {precision}: exit {proc.returncode}: {proc.stdout[-500:]} {proc.stderr[-500:]}"
-    assert "done" in proc.stdout + proc.stderr
-    return read_output(workdir / "mkc_out.bin")
+        return RH.run_board(harness, board, precision, workdir, timeout_s=QEMU_TIMEOUT_S)
+    except RH.HarnessError as exc:
+        pytest.fail(str(exc))
 
 
 def rel(a, b, scale):
