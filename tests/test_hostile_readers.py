@@ -541,6 +541,26 @@ def test_csv_log_header_joined_to_the_first_frame_is_a_counted_loss(tmp_path, lo
     assert len(out) == N_FRAMES and c["bad_frames"] == 0
 
 
+def test_asc_trigger_block_joined_to_the_header_still_counts_a_damaged_frame(tmp_path, logs):
+    """Two flips found by the byte-flip test (run with 15 times its examples): the line ending before
+    "Begin Triggerblock" turned into a vertical tab joins that line to the header's "internal events
+    logged", and a flipped byte in the first frame's identifier ("110!") makes python-can skip that
+    line. python-can reads the body's frames without the block's opening line, so the reader must
+    count a line that gives no frame there too: before, the loss was silent (119 frames, nothing
+    counted)."""
+    data = bytearray(logs[".asc"][0])
+    begin = data.index(b"Begin Triggerblock")
+    assert data[begin - 1:begin] == b"\n"
+    data[begin - 1] ^= 1
+    first = data.index(b" Rx ") - 1                    # the last byte of the first frame's identifier field
+    data[first] ^= 1
+    out, c, d = read_log(_write(tmp_path / "joined.asc", bytes(data)))
+    assert len(out) == N_FRAMES - 1 and [s.seq for s in out] == list(range(1, N_FRAMES))
+    assert d["ignored"] == 1
+    out, c, d = read_log(_write(tmp_path / "clean.asc", logs[".asc"][0]))
+    assert len(out) == N_FRAMES and d["ignored"] == 0 and c["bad_frames"] == 0
+
+
 def _write(path, data):
     path.write_bytes(data)
     return path

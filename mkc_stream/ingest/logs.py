@@ -157,6 +157,10 @@ MAX_LOG_LINE = 4096
 #: the first line of python-can's CSV log: column names only ("timestamp,arbitration_id,...,data";
 #: another column set is still a header, a frame's values are not)
 _CSV_HEADER_LINE = re.compile(r"[a-z_]+(,[a-z_]+)*")
+#: the header lines python-can's ASC reader reads before the body (date, base, comments), and the
+#: line that ends its header ("[no] internal events logged"; any other line ends it too, consumed)
+_ASC_HEADER_LINE = re.compile(r"date\s+\w+\s+.+|base\s+(hex|dec)|//", re.IGNORECASE)
+_ASC_EVENTS_LINE = re.compile(r"(no)?\s*internal\s+events\s+logged", re.IGNORECASE)
 _TEXT_READERS = {".log": "CanutilsLogReader", ".asc": "ASCReader", ".trc": "TRCReader", ".csv": "CSVReader"}
 
 
@@ -180,9 +184,12 @@ class _TextLines:
         self.damage: list[tuple[str, str]] = damage
         self._kind = suffix
         self.asc_blocks = 0                   # "Begin Triggerblock" minus "End TriggerBlock"
+        self.asc_header = suffix == ".asc"    # python-can's ASC reader is still reading the header
         # ASC and TRC: python-can skips a line it does not read as a frame (an event, an
-        # unsupported type, or a damaged frame) without a word; a line of the trigger block (ASC)
-        # or of the body (TRC) that gave no frame is counted as ignored
+        # unsupported type, or a damaged frame) without a word; a line of the body that gave no
+        # frame is counted as ignored (the ASC reader reads every line after its header as a
+        # possible frame, inside a trigger block or not: a "Begin Triggerblock" joined to the
+        # header by a damaged line ending still leaves the frames read)
         self.pending = False                  # the last line handed out should give a frame
         self.skipped = 0
         self._ended = False
@@ -232,11 +239,21 @@ class _TextLines:
         if self.pending:
             self.skipped += 1
         if self._kind == ".asc":
+            if self.asc_header:
+                # the reader's header loop: date, base and comment lines go on; the events line ends
+                # it; any other line ends it too, consumed unread (a frame in it is lost: pending)
+                if _ASC_HEADER_LINE.match(low):
+                    self.pending = False
+                    return
+                self.asc_header = False
+                if _ASC_EVENTS_LINE.match(low):
+                    self.pending = False
+                    return
             if low.startswith("begin triggerblock"):
                 self.asc_blocks += 1
             elif low.startswith("end triggerblock"):
                 self.asc_blocks -= 1
-            self.pending = bool(self.asc_blocks > 0 and low and not low.startswith(("//", "begin triggerblock"))
+            self.pending = bool(low and not low.startswith(("//", "begin triggerblock", "end triggerblock"))
                                 and not low.endswith("start of measurement"))
         elif self._kind == ".trc":
             self.pending = bool(low) and not low.startswith(";")
