@@ -56,11 +56,13 @@ def _collect(r, types):
     """Every message of ``types`` as {type: [(time_s, message)]}, and what the reader said.
 
     The messages are parsed one after the other (recv_msg), not through pymavlink's index: the
-    index stops at the first byte it cannot frame, the parser steps over it and goes on."""
+    index stops at the first byte it cannot frame, the parser steps over it and goes on. The byte
+    after the last message parsed is kept as ``r.mkc_parsed_end`` (see :func:`_damage`)."""
     wanted = set(types)
     out = {k: [] for k in types}
     px4_time = None
     r._rewind()
+    r.mkc_parsed_end = r.offset
     with captured_output() as said:
         while True:
             try:
@@ -70,6 +72,7 @@ def _collect(r, types):
                 break
             if m is None:
                 break
+            r.mkc_parsed_end = r.offset
             name = m.get_type()
             if name not in wanted:
                 continue
@@ -99,10 +102,13 @@ def _damage(said: str, r) -> list[tuple[int, str]]:
     rest = "\n".join(line for line in said.splitlines() if not _SKIPPED.search(line)
                      and not line.startswith(("bad header", "unknown msg type")))    # the index's: parsed again
     out += [(0, f"damage: the DataFlash reader says {line}") for line in said_lines(rest)]
-    left = r.data_len - r.offset
-    if left > 0:                   # the parser stopped before the end: the last message is cut short
-        out.append((int(r.offset), f"truncated: the log ends inside its last message ({left} bytes left over "
-                                   f"at byte {r.offset})"))
+    # the bytes after the last message parsed: the parser stops at a message cut short, and when
+    # only its 3-byte header is left it has already stepped over it (its offset is then the end)
+    end = getattr(r, "mkc_parsed_end", r.offset)
+    left = r.data_len - end
+    if left > 0:
+        out.append((int(end), f"truncated: the log ends inside its last message ({left} bytes left over "
+                              f"at byte {end})"))
     return out
 
 
