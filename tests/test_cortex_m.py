@@ -214,14 +214,15 @@ def test_a_bad_input_file_is_refused_on_the_board(harness, tmp_path):
 
 
 def accepted_differences(recs, g):
-    """Largest relative differences of the board's accepted checkpoints from the golden double reference:
-    theta max |dtheta| / max |theta|, b |db| / F, S |dS|, F |dF| / F (those of test_float_precision.py)."""
-    acc = (g["accepted"] == 1) & (recs[:, O_ACCEPTED] == 1)
-    th, F = g["theta"][acc], np.abs(g["field"][acc]).reshape(-1)
-    return {"theta": float(np.max(np.abs(recs[acc, O_THETA:O_THETA + 9] - th)) / float(np.max(np.abs(th)))),
-            "b": float(np.max(np.abs(recs[acc, O_HARD:O_HARD + 3] - g["hard_iron"][acc]) / F[:, None])),
-            "S": float(np.max(np.abs(recs[acc, O_SOFT:O_SOFT + 9] - g["soft_iron"][acc].reshape(-1, 9)))),
-            "F": float(np.max(np.abs(recs[acc, O_FIELD] - g["field"][acc].reshape(-1)) / F))}, int(acc.sum())
+    """Largest relative differences of the board's accepted checkpoints from the golden double reference
+    (tools/replay_harness.py accepted_differences, the golden checkpoints laid out as records)."""
+    ref = np.zeros((len(g["accepted"]), RH.RECORD))
+    ref[:, O_ACCEPTED] = g["accepted"]
+    ref[:, O_THETA:O_THETA + 9] = g["theta"]
+    ref[:, O_HARD:O_HARD + 3] = g["hard_iron"]
+    ref[:, O_SOFT:O_SOFT + 9] = np.reshape(g["soft_iron"], (-1, 9))
+    ref[:, O_FIELD] = np.reshape(g["field"], -1)
+    return RH.accepted_differences(recs, ref)
 
 
 #: the vectors that accept and fit the board (W <= 256): syn_s4009_b25_pool_refit is the one that
