@@ -4,10 +4,10 @@
   firmware using the calibrator (firmware_ref/target/footprint_main.c) minus the same firmware without
   it (target/footprint_base_main.c), on the Cortex-M4F board. Checked: the difference is that, the
   firmware without the library is small, and the all-float build links none of libgcc's software
-  double arithmetic (the double build does: the check can see it). Skipped, saying why, without
-  arm-none-eabi-gcc (Debian: gcc-arm-none-eabi, libnewlib-arm-none-eabi).
-- The all-float build stores reason values (mkc_mag_reason.v, double) by widening the float's bits
-  (src/mkc_internal.h mkc__reason_value): equal to C's (double) conversion for every class of float.
+  double, neither arithmetic nor conversions (the double build does: the check can see it). Skipped,
+  saying why, without arm-none-eabi-gcc (Debian: gcc-arm-none-eabi, libnewlib-arm-none-eabi).
+- The public API's settings and reason values (mkc_api_real) are float in the all-float build and
+  double in the others.
 - A float build checks its real settings as the state holds them, after rounding to float: a setting
   that becomes inf or 0 in float is refused there, accepted by the double build.
 The host-compiler parts skip without a C compiler (CC).
@@ -33,7 +33,7 @@ STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-prom
           "-Wshadow", "-Wstrict-prototypes", "-ffp-contract=off", "-fno-fast-math", "-O2"]
 ALL_FLOAT = ["-DMKC_USE_FLOAT", "-DMKC_ACC_DOUBLE=0", "-DMKC_ESTEP_DOUBLE=0"]
 LIB_SRC = sorted(str(p) for p in (FW / "src").glob("*.c"))
-#: libgcc's software double arithmetic (add/sub, mul/div, compare); a conversion (truncdfsf2) may remain
+#: libgcc's software double arithmetic (add/sub, mul/div, compare)
 SOFT_DOUBLE_ARITHMETIC = ("_arm_addsubdf3.o", "_arm_muldivdf3.o", "_arm_cmpdf2.o", "_arm_unorddf2.o")
 
 needs_cc = pytest.mark.skipif(shutil.which(CC) is None, reason=f"no C compiler: `{CC}` is not on PATH (set CC)")
@@ -51,47 +51,25 @@ def _compile_and_run(tmp_path: pathlib.Path, source: str, flags: list[str], sour
     return run.stdout
 
 
-WIDEN_PROBE = r"""
+API_TYPES_PROBE = r"""
 #include <stdio.h>
-#include <string.h>
-#include "mkc_internal.h"
-
-static int check(uint32_t bits, long *checked)
-{
-    float f;
-    double want, got;
-    memcpy(&f, &bits, sizeof f);
-    want = (double)f;
-    got = mkc__reason_value(f);
-    *checked += 1;
-    if (f != f)                                   /* NaN: a NaN of the same sign (payloads may differ) */
-        return !(got != got) || !signbit(got) != !signbit(want);
-    return memcmp(&want, &got, sizeof want) != 0;
-}
+#include "mkc.h"
 
 int main(void)
 {
-    long bad = 0, checked = 0;
-    uint32_t e, m, s;
-    static const uint32_t mantissas[] = {0u, 1u, 2u, 3u, 0x400000u, 0x7fffffu, 0x123457u, 0x7ffffeu, 0x000100u};
-    for (s = 0; s < 2; s++)
-        for (e = 0; e < 256; e++)
-            for (m = 0; m < sizeof mantissas / sizeof mantissas[0]; m++)
-                bad += check(s << 31 | e << 23 | mantissas[m], &checked);
-    for (m = 1; m < (1u << 23); m += 97)          /* subnormals, every normalising shift */
-        bad += check(m, &checked) + check(0x80000000u | m, &checked);
-    printf("%ld %ld\n", bad, checked);
+    mkc_config cfg;
+    mkc_mag_reason r;
+    printf("%u %u\n", (unsigned)sizeof cfg.sigma_pull, (unsigned)sizeof r.v[0]);
     return 0;
 }
 """
 
 
 @needs_cc
-def test_reason_values_widen_exactly_in_the_all_float_build(tmp_path):
-    # the widening is a library function (quality.c): link the library's sources with the probe
-    bad, checked = map(int, _compile_and_run(tmp_path, WIDEN_PROBE, ALL_FLOAT, LIB_SRC).split())
-    assert checked > 90_000
-    assert bad == 0
+@pytest.mark.parametrize("precision,expected", [("double", "8 8"), ("all-float", "4 4"), ("float", "8 8")])
+def test_the_api_settings_and_reason_values_are_float_only_in_the_all_float_build(tmp_path, precision, expected):
+    flags = {"double": [], "float": ["-DMKC_USE_FLOAT"], "all-float": ALL_FLOAT}[precision]
+    assert " ".join(_compile_and_run(tmp_path, API_TYPES_PROBE, flags).split()) == expected
 
 
 CONFIG_PROBE = r"""
@@ -100,7 +78,7 @@ CONFIG_PROBE = r"""
 
 static mkc_stream_t st;
 
-static int init_with(double sigma_lo, double sigma_hi)
+static int init_with(mkc_api_real sigma_lo, mkc_api_real sigma_hi)
 {
     mkc_config cfg;
     mkc_config_default(&cfg, 4, 1);
@@ -113,8 +91,8 @@ int main(void)
 {
     mkc_config cfg;
     mkc_config_default(&cfg, 4, 1);
-    printf("%d %d %d\n", init_with(cfg.sigma_lo, cfg.sigma_hi), init_with(cfg.sigma_lo, 1e300),
-           init_with(1e-60, cfg.sigma_hi));
+    printf("%d %d %d\n", init_with(cfg.sigma_lo, cfg.sigma_hi), init_with(cfg.sigma_lo, (mkc_api_real)1e300),
+           init_with((mkc_api_real)1e-60, cfg.sigma_hi));
     return 0;
 }
 """
@@ -124,7 +102,8 @@ int main(void)
 @pytest.mark.parametrize("precision,expected", [("double", "0 0 0"), ("all-float", "0 4 4"), ("float", "0 4 4")])
 def test_settings_are_checked_in_the_precision_the_state_holds(tmp_path, precision, expected):
     """sigma_hi = 1e300 is inf as a float and sigma_lo = 1e-60 is 0: a float build refuses both
-    (MKC_BAD_INPUT = 4); the double build takes them; the defaults pass everywhere (MKC_OK = 0)."""
+    (MKC_BAD_INPUT = 4; the all-float build's settings are float, so they arrive as inf and 0); the
+    double build takes them; the defaults pass everywhere (MKC_OK = 0)."""
     flags = {"double": [], "float": ["-DMKC_USE_FLOAT"], "all-float": ALL_FLOAT}[precision]
     out = _compile_and_run(tmp_path, CONFIG_PROBE, flags, LIB_SRC).split()
     assert " ".join(out) == expected
@@ -157,11 +136,14 @@ def test_flash_added_is_the_firmware_with_the_library_minus_without(flash, preci
     assert 0 < origin["program"] < 512                           # main's own calls
 
 
-def test_all_float_build_links_no_software_double_arithmetic(flash):
-    def soft(precision):
-        return [m for m in flash[precision]["added_by_member"] if m.startswith("libgcc.a(")
-                and m.split("(", 1)[1].rstrip(")") in SOFT_DOUBLE_ARITHMETIC]
+def test_all_float_build_links_no_software_double(flash):
+    def soft(precision, arithmetic_only=True):
+        # libgcc's soft-float routines carry their mode in the name: df is double (adddf3,
+        # truncdfsf2, fixdfsi ...)
+        members = [m.split("(", 1)[1].rstrip(")") for m in flash[precision]["added_by_member"]
+                   if m.startswith("libgcc.a(")]
+        return [m for m in members if (m in SOFT_DOUBLE_ARITHMETIC if arithmetic_only else "df" in m)]
 
     assert soft("double")                                        # the check sees it where it is
-    assert soft("floatonly") == []
+    assert soft("floatonly", arithmetic_only=False) == []        # nor a conversion: the settings are float
     assert flash["floatonly"]["flash_added_bytes"] < flash["double"]["flash_added_bytes"]

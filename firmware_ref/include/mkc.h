@@ -65,8 +65,9 @@ typedef struct mkc_config {
     int estep_max_iter;     /* BFGS iterations per channel per E-step */
     int refactor_every;     /* tracking steps between Cholesky refreshes (0: min(K, max(1, W/8))) */
     int min_samples;        /* samples before the first solve (0: ceil(max(2n, n+8) / m)) */
-    double sigma_lo, sigma_hi, d_lo, d_hi, a_factor, a, estep_gtol, fp_tol, sigma_start;
-    double sigma_pull;      /* weak prior on sigma, nats per e-fold (0: the paper's ML) */
+    /* mkc_api_real: float in the all-float build, double otherwise (mkc_config.h) */
+    mkc_api_real sigma_lo, sigma_hi, d_lo, d_hi, a_factor, a, estep_gtol, fp_tol, sigma_start;
+    mkc_api_real sigma_pull;  /* weak prior on sigma, nats per e-fold (0: the paper's ML) */
 } mkc_config;
 
 /* ---- the state (mkc_stream/state.py STATE_FIELDS; X, Y in the outer struct, scratch ebuf last; the
@@ -155,7 +156,7 @@ enum {
 typedef struct mkc_mag_reason {
     int32_t code;
     uint32_t fails;
-    double v[6];
+    mkc_api_real v[6];               /* float in the all-float build, double otherwise */
 } mkc_mag_reason;
 
 typedef struct mkc_mag_rules {       /* calib/acceptance.py AcceptanceRules */

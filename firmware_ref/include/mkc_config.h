@@ -86,6 +86,15 @@ typedef float mkc_acc;
 #define MKC_ALL_FLOAT 0
 #endif
 
+/* the real type of the public API's run-time settings (mkc_config) and reason values
+ * (mkc_mag_reason.v): float in the all-float build, where a double would be converted by libgcc's
+ * software double on an FPU without double; double in the others */
+#if MKC_ALL_FLOAT
+typedef float mkc_api_real;
+#else
+typedef double mkc_api_real;
+#endif
+
 /* arithmetic type of the E-step (objective, normaliser, BFGS) */
 #if MKC_ESTEP_DOUBLE
 typedef double mkc_ereal;

@@ -458,7 +458,7 @@ static void checkpoint(mkc_mag_t *g)
     reason.code = MKC_REASON_NONE;
     reason.fails = 0;
     for (j = 0; j < 6; j++)
-        reason.v[j] = 0.0;
+        reason.v[j] = 0;
     why = mkc__geometry_from_theta(g->core.theta, &geom, &reason);
     if (why != MKC_REASON_NONE) {
         reason.code = why;
@@ -686,7 +686,7 @@ void mkc_mag_status_reason(const mkc_mag_t *cal, mkc_mag_reason *out)
     int j;
     out->fails = 0;
     for (j = 0; j < 6; j++)
-        out->v[j] = 0.0;
+        out->v[j] = 0;
     if (!(cal->s0 > RC(0.0))) {
         out->code = MKC_REASON_PENDING;
         out->v[0] = MKC_REASON_VALUE(cal->pending);

@@ -52,16 +52,8 @@ typedef char mkc__check_named_fields[
      sizeof(mkc_core_fit) == MKC_N_FSTATE * sizeof(mkc_real))
     ? 1 : -1];
 
-/* A value as the double of a reason (mkc_mag_reason.v). In the all-float build it widens the float
- * exactly from its bits (sign; exponent rebiased 127 -> 1023, subnormals normalised; mantissa
- * shifted to 52 bits), because on a single-precision FPU the compiler's float-to-double conversion is
- * a call into libgcc's software double, which would then be linked for these few stores alone. */
-#if defined(MKC_USE_FLOAT) && !MKC_ACC_DOUBLE && !MKC_ESTEP_DOUBLE && MKC_CREAL_FLOAT
-double mkc__reason_value(float x);   /* quality.c */
-#define MKC_REASON_VALUE(x) mkc__reason_value((float)(x))
-#else
-#define MKC_REASON_VALUE(x) ((double)(x))
-#endif
+/* A value as a reason holds it (mkc_mag_reason.v: float in the all-float build, double otherwise) */
+#define MKC_REASON_VALUE(x) ((mkc_api_real)(x))
 
 #define MKC_PI 3.141592653589793238462643383279502884
 

@@ -159,7 +159,7 @@ int mkc_persist_load_calibration(mkc_mag_t *cal, const uint8_t *buf, size_t len)
     c.reason.code = MKC_REASON_NONE;
     c.reason.fails = 0;
     for (j = 0; j < 6; j++)
-        c.reason.v[j] = 0.0;
+        c.reason.v[j] = 0;
     cal->accepted = c;
     mkc__seed_pool(cal);      /* new trials are weighed against it, as against one the run accepted */
     return MKC_PERSIST_OK;

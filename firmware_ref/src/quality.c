@@ -8,36 +8,6 @@
  */
 #include "mkc_internal.h"
 
-/* mkc_internal.h MKC_REASON_VALUE: one out-of-line copy for every file that stores a reason. */
-#if defined(MKC_USE_FLOAT) && !MKC_ACC_DOUBLE && !MKC_ESTEP_DOUBLE && MKC_CREAL_FLOAT
-double mkc__reason_value(float x)
-{
-    union { float f; uint32_t u; } in;
-    union { uint64_t u; double d; } out;
-    uint32_t exponent, mantissa;
-    uint64_t exp64;
-    in.f = x;
-    exponent = (in.u >> 23) & 0xffu;
-    mantissa = in.u & 0x7fffffu;
-    if (exponent == 0xffu) {
-        exp64 = 0x7ffu;                             /* inf, NaN */
-    } else if (exponent != 0u) {
-        exp64 = (uint64_t)exponent + (1023u - 127u);
-    } else if (mantissa == 0u) {
-        exp64 = 0u;                                 /* +-0 */
-    } else {
-        exp64 = 1023u - 126u;                       /* subnormal: m 2^-149 = 1.f 2^(-126-k) */
-        while (!(mantissa & 0x800000u)) {
-            mantissa <<= 1;
-            exp64 -= 1u;
-        }
-        mantissa &= 0x7fffffu;
-    }
-    out.u = (uint64_t)(in.u >> 31) << 63 | exp64 << 52 | (uint64_t)mantissa << 29;
-    return out.d;
-}
-#endif
-
 /* np.std of x[0..n-1] (work: n scratch values, may be x itself): sqrt(mean((x - mean(x))^2)). */
 static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
 {

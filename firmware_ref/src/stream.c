@@ -11,16 +11,16 @@ void mkc_config_default(mkc_config *cfg, int n, int m)
     cfg->estep_max_iter = MKC_DEF_ESTEP_MAX_ITER;
     cfg->refactor_every = MKC_DEF_REFACTOR_EVERY;
     cfg->min_samples = MKC_DEF_MIN_SAMPLES;
-    cfg->sigma_lo = MKC_DEF_SIGMA_LO;
-    cfg->sigma_hi = MKC_DEF_SIGMA_HI;
-    cfg->d_lo = MKC_DEF_D_LO;
-    cfg->d_hi = MKC_DEF_D_HI;
-    cfg->a_factor = MKC_DEF_A_FACTOR;
-    cfg->a = MKC_DEF_A;
-    cfg->estep_gtol = MKC_DEF_ESTEP_GTOL;
-    cfg->fp_tol = MKC_DEF_FP_TOL;
-    cfg->sigma_start = MKC_DEF_SIGMA_START;
-    cfg->sigma_pull = MKC_DEF_SIGMA_PULL;
+    cfg->sigma_lo = (mkc_api_real)MKC_DEF_SIGMA_LO;
+    cfg->sigma_hi = (mkc_api_real)MKC_DEF_SIGMA_HI;
+    cfg->d_lo = (mkc_api_real)MKC_DEF_D_LO;
+    cfg->d_hi = (mkc_api_real)MKC_DEF_D_HI;
+    cfg->a_factor = (mkc_api_real)MKC_DEF_A_FACTOR;
+    cfg->a = (mkc_api_real)MKC_DEF_A;
+    cfg->estep_gtol = (mkc_api_real)MKC_DEF_ESTEP_GTOL;
+    cfg->fp_tol = (mkc_api_real)MKC_DEF_FP_TOL;
+    cfg->sigma_start = (mkc_api_real)MKC_DEF_SIGMA_START;
+    cfg->sigma_pull = (mkc_api_real)MKC_DEF_SIGMA_PULL;
 }
 
 int mkc_stream_init(mkc_stream_t *st, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,

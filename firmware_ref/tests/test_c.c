@@ -292,7 +292,7 @@ static void test_configuration(void)
     cfg.sigma_lo = 2000.0;
     CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "sigma_lo > sigma_hi");
     mkc_config_default(&cfg, 9, 1);
-    cfg.d_hi = (double)NAN;
+    cfg.d_hi = (mkc_api_real)NAN;
     CHECK(mkc_stream_init(&st, &cfg, NULL, NULL, NULL) == MKC_BAD_INPUT, "NaN bound");
     mkc_config_default(&cfg, 9, 1);
     CHECK(mkc_stream_init(&st, &cfg, bad_sigma, NULL, NULL) == MKC_BAD_INPUT, "negative sigma0");

@@ -36,10 +36,6 @@ FAIL_DISAGREEMENT = 64
 NOT_CALIBRATED = 7
 
 
-class _MagReason(C.Structure):
-    _fields_ = [("code", C.c_int32), ("fails", C.c_uint32), ("v", C.c_double * 6)]
-
-
 class _Lib:
     """A loaded libmkc_*.so with its prototypes and the ctypes mirrors of the public structs."""
 
@@ -56,6 +52,9 @@ class _Lib:
         self.precision = precision
         self.real = C.c_double if rb == 8 else C.c_float
         self.ereal = C.c_double if eb == 8 else C.c_float
+        # mkc_api_real (mkc_config.h): the settings' and reason values' type, float only in the
+        # all-float build (float storage, normal equations and E-step)
+        self.api_real = api_real = C.c_float if (rb, ab, eb) == (4, 4, 4) else C.c_double
         self.dtype = np.float64 if rb == 8 else np.float32
         self.real_bytes, self.acc_bytes, self.ereal_bytes = rb, ab, eb
         real = self.real
@@ -63,7 +62,7 @@ class _Lib:
         class Config(C.Structure):
             _fields_ = [("n", C.c_int), ("m", C.c_int), ("window", C.c_int), ("estep_every", C.c_int),
                         ("fp_rounds", C.c_int), ("estep_max_iter", C.c_int), ("refactor_every", C.c_int),
-                        ("min_samples", C.c_int)] + [(k, C.c_double) for k in (
+                        ("min_samples", C.c_int)] + [(k, api_real) for k in (
                             "sigma_lo", "sigma_hi", "d_lo", "d_hi", "a_factor", "a", "estep_gtol", "fp_tol",
                             "sigma_start", "sigma_pull")]
 
@@ -76,17 +75,21 @@ class _Lib:
             _fields_ = [("stream", Config), ("policy", C.c_int), ("unit_ut", C.c_int), ("init_samples", C.c_int),
                         ("rules", Rules), ("switching", C.c_int)]
 
+        class MagReason(C.Structure):
+            _fields_ = [("code", C.c_int32), ("fails", C.c_uint32), ("v", api_real * 6)]
+
         class Calibration(C.Structure):
             _fields_ = [("hard_iron", real * 3), ("soft_iron", real * 9), ("field", real), ("sigma", real),
                         ("d", real), ("quality", real * 7), ("valid", C.c_int32), ("accepted", C.c_int32),
-                        ("reason", _MagReason), ("samples_seen", C.c_int64), ("esteps", C.c_int64)]
+                        ("reason", MagReason), ("samples_seen", C.c_int64), ("esteps", C.c_int64)]
 
         class Event(C.Structure):
             _fields_ = [("samples_seen", C.c_int64), ("esteps", C.c_int64), ("accepted", C.c_int32),
-                        ("has_calibration", C.c_int32), ("reason", _MagReason), ("hard_iron", real * 3),
+                        ("has_calibration", C.c_int32), ("reason", MagReason), ("hard_iron", real * 3),
                         ("field", real), ("coverage", real), ("outlier_fraction", real)]
 
         self.Config, self.Rules, self.MagConfig, self.Calibration, self.Event = Config, Rules, MagConfig, Calibration, Event
+        self.MagReason = MagReason
         vp, rp = C.c_void_p, C.POINTER(real)
         i8p = C.POINTER(C.c_int8)
         self.Listener = C.CFUNCTYPE(None, C.c_void_p, C.c_void_p)
@@ -101,7 +104,7 @@ class _Lib:
             "mkc_mag_push": (C.c_int, [vp, real, real, real]),
             "mkc_mag_push_many": (C.c_int, [vp, rp, C.c_long, i8p]),
             "mkc_mag_apply": (C.c_int, [vp, rp, rp]),
-            "mkc_mag_status_reason": (None, [vp, C.POINTER(_MagReason)]),
+            "mkc_mag_status_reason": (None, [vp, C.POINTER(MagReason)]),
             "mkc_mag_counts": (None, [vp, C.POINTER(C.c_int64), C.POINTER(C.c_int64)]),
             "mkc_get": (C.c_int, [vp, C.c_int, C.c_int, C.POINTER(C.c_double), C.c_int]),
             "mkc_set": (C.c_int, [vp, C.c_int, C.c_int, C.POINTER(C.c_double), C.c_int]),
@@ -429,7 +432,7 @@ class CMagCalibrator(_CoreFields):
 
     def status(self):
         """None when accepted, else the Rejection (calib/result.py) of MagCalibrator.status()."""
-        r = _MagReason()
+        r = self.lib.MagReason()
         self.lib.dll.mkc_mag_status_reason(self._addr, C.byref(r))
         return rejection_from_code(r.code, r.fails, list(r.v), self.rules)
 
