@@ -13,7 +13,7 @@ import pytest
 
 from mkc_stream.calib.synthetic import synthetic_mag
 from mkc_stream.ingest import FakeClock, Paced, Sample, SourceError, SourceLost, open_source
-from mkc_stream.ingest.binary import encode_frame
+from mkc_stream.ingest.binary import BinaryDecoder, encode_frame
 from mkc_stream.ingest.counters import GapCounter
 from mkc_stream.ingest.live import Run
 from mkc_stream.ingest.logs import CanLogSource, RecordingSource
@@ -116,6 +116,47 @@ def test_socket_url_vectornav_and_every_byte_before_the_disconnect():
                 got += s.read(0.1)
     srv.close()
     assert len(got) == 20 and got[0].mag == pytest.approx((20, 0, 40))
+
+
+class ByteChunkSource(BaseSource):
+    """A binary-protocol device whose bytes arrive in the given chunks, one chunk per read."""
+
+    def __init__(self, chunks):
+        super().__init__("bytes://", decoder=BinaryDecoder())
+        self._chunks = list(chunks)
+
+    def read(self, timeout=0.05):
+        if not self._chunks:
+            self.eof = True
+            return []
+        return self._account(self.decoder.feed(self._chunks.pop(0)))
+
+
+def _frames(seqs, damaged=()):
+    out = b""
+    for q in seqs:
+        f = bytearray(encode_frame(q, 1000 * q, (1.0, 2.0, 3.0)))
+        if q in damaged:
+            f[-1] ^= 0xFF                                          # a CRC that fails
+        out += bytes(f)
+    return out
+
+
+def test_a_run_that_stops_inside_a_chunk_counts_no_damage_after_its_last_sample():
+    """Damage and drops are counted when the next good frame shows them; a run that stops at its
+    n-th sample counts those before that sample, not those the rest of its chunk showed (the
+    end-to-end serial test saw samples + bad + drops exceed the device's frames by one)."""
+    # one chunk: seq 0-9 good, 10 damaged, 11-14 good, 15 lost, 16-19 good; then a second chunk
+    src = ByteChunkSource([_frames([q for q in range(20) if q != 15], damaged={10}),
+                           _frames(range(20, 25), damaged={22})])
+    got = src.read() + src.read()
+    assert [g.seq for g in got] == [q for q in range(25) if q not in (10, 15, 22)]
+    # sample 10 is seq 9 (before the damage), 11 is seq 11, 15 is seq 16 (after the drop), 21 is seq 23
+    want = {10: (0, 0), 11: (1, 0), 14: (1, 0), 15: (1, 1), 18: (1, 1), 20: (1, 1), 21: (2, 1), 22: (2, 1)}
+    for n, (bad, drops) in want.items():
+        c = src.counts(n)
+        assert (c["bad_frames"], c["drops"]) == (bad, drops), n
+    assert src.counts()["bad_frames"] == 2 and src.counts()["drops"] == 1
 
 
 # --- recordings as sources -----------------------------------------------------------------------

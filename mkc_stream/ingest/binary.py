@@ -30,7 +30,7 @@ import math
 import struct
 
 from .counters import SeqTracker
-from .decoder import Decoder
+from .decoder import Decoder, SampleList
 from .sample import Sample
 
 SYNC = b"\xa5\x5a"
@@ -99,7 +99,7 @@ class BinaryDecoder(Decoder):
         """Decode complete frames; ``final``: no more bytes will come, so a frame that cannot
         complete is a false sync (skip a byte and go on) rather than one to wait for."""
         buf = self._buf
-        out: list[Sample] = []
+        out = SampleList(self.counts)
         pos, n = 0, len(buf)
         while True:
             p = buf.find(SYNC, pos)

@@ -13,6 +13,7 @@ from collections import Counter
 
 from .canframe import DEFAULT_CAN_ID, decode_mag_frame
 from .counters import DecodeCounts, SeqTracker
+from .decoder import SampleList
 from .sample import Sample
 
 
@@ -56,7 +57,7 @@ class CanDecoder:
         self._bad_since_good = 0
 
     def feed(self, messages) -> list[Sample]:
-        out = []
+        out = SampleList(self.counts)
         for msg in messages:
             if msg.is_error_frame:
                 self.counts.ignored += 1

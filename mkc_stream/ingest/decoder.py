@@ -12,6 +12,22 @@ from .counters import DecodeCounts
 from .sample import Sample
 
 
+class SampleList(list):
+    """The samples of one feed, each with the decoder's (bad_frames, drops) as they stood once it
+    was decoded (``after``). A decoder counts damage and drops before the good frame that follows
+    them, so a run that stops inside a chunk counts what came before its last sample and nothing
+    after it (:meth:`.source.Source.counts`)."""
+
+    def __init__(self, counts: DecodeCounts):
+        super().__init__()
+        self._counts = counts
+        self.after: list[tuple[int, int]] = []
+
+    def append(self, sample):
+        super().append(sample)
+        self.after.append((self._counts.bad_frames, self._counts.drops))
+
+
 class BadFrame(ValueError):
     """A frame or line that arrived damaged; the message says why."""
 
@@ -73,7 +89,7 @@ class LineDecoder(Decoder):
     def feed(self, data: bytes, t_host: float = math.nan) -> list[Sample]:
         buf = self._buf
         buf += data
-        out: list[Sample] = []
+        out = SampleList(self.counts)
         start = 0
         while True:
             end = buf.find(b"\n", start)
@@ -125,7 +141,7 @@ class LineDecoder(Decoder):
             out.append(s)
 
     def flush(self) -> list[Sample]:
-        out: list[Sample] = []
+        out = SampleList(self.counts)
         if self._buf and not self._overlong:
             self._line(bytes(self._buf), math.nan, out)
         self._buf.clear()

@@ -58,7 +58,9 @@ class BaseSource:
         self.decoder = decoder
         self.eof = False
         self.samples = 0
-        #: (samples so far, bad frames, drops) at the end of each chunk not yet wholly consumed
+        #: (k, bad frames, drops): the decoder's counts once sample k (1-based) was decoded, and
+        #: so up to the next mark; a mark where they change, or one per chunk (at its first
+        #: sample, the chunk's end counts) when the decoder gives no per-sample counts
         self._marks: collections.deque = collections.deque()
         self._marks_lock = threading.Lock()
         self.gaps = GapCounter(min_gap_s=HOST_TIME_MIN_GAP_S if time_source == "host" else 0.0)
@@ -67,34 +69,40 @@ class BaseSource:
             self.meta.update(getattr(decoder, "meta", {}))
 
     def _account(self, samples: list[Sample]) -> list[Sample]:
+        first = self.samples + 1
         self.samples += len(samples)
         upd = self.gaps.update
         for s in samples:
             upd(s.t)
         c = self.decoder.counts if self.decoder is not None else None
         if c is not None and samples:
-            # what the decoder had counted when this chunk's last sample came out: a run that stops
-            # at its N-th sample while a reader thread decodes ahead counts the damage up to there
+            # what the decoder had counted when each sample came out: a run that stops at its N-th
+            # sample while a reader thread decodes ahead counts the damage up to there, not the
+            # damage the rest of that sample's chunk showed
+            after = getattr(samples, "after", None)
+            if after is None or len(after) != len(samples):
+                after = [(c.bad_frames, c.drops)]
             with self._marks_lock:              # a reader thread appends while the run reads counts
-                self._marks.append((self.samples, c.bad_frames, c.drops))
+                marks = self._marks
+                for i, (b, d) in enumerate(after):
+                    if not marks or marks[-1][1:] != (b, d):
+                        marks.append((first + i, b, d))
         return samples
 
     def counts(self, consumed: int | None = None) -> dict:
         """The spec's counts; ``consumed``: samples a run actually used (it may stop mid-batch, and a
-        reader thread may have decoded ahead: bad frames and drops are those counted by the end of
-        the chunk that held the last consumed sample)."""
+        reader thread may have decoded ahead: bad frames and drops are those the decoder had counted
+        once the last consumed sample was decoded; by the end of its chunk for a decoder that gives
+        no per-sample counts)."""
         c = self.decoder.counts if self.decoder is not None else None
         n = self.samples if consumed is None else consumed
         bad, drops = (c.bad_frames, c.drops) if c else (0, 0)
         with self._marks_lock:
             marks = self._marks
-            while len(marks) > 1 and marks[1][0] <= n:      # chunks wholly consumed: done with
+            while len(marks) > 1 and marks[1][0] <= n:      # marks before the one at sample n: done with
                 marks.popleft()
             if c is not None and n < self.samples:
-                for upto, b, d in marks:
-                    if upto >= n:
-                        bad, drops = b, d
-                        break
+                bad, drops = marks[0][1:] if marks and marks[0][0] <= n else (0, 0)
         return {"samples": n, "bad_frames": bad, "drops": drops, "gaps": self.gaps.final()}
 
     def detail(self) -> dict:
