@@ -100,7 +100,7 @@ def test_estimate_bursts_counts_a_hidden_burst_for_the_replicas():
 def test_block_stats_keep_a_hidden_burst_out_of_the_inlier_means():
     from types import SimpleNamespace
 
-    from mkc_stream.diagnose import panel
+    from mkc_stream.diagnose import block_sums, panel
 
     rng = np.random.default_rng(7)
     v = rng.normal(size=(N, 3))
@@ -111,7 +111,7 @@ def test_block_stats_keep_a_hidden_burst_out_of_the_inlier_means():
     d = panel.make_design(frame, v, [1.0], {}, np.ones(3), np.zeros(3), np.ones(3))
     e = _white(8)[:, None]
     e[4300:4330, 0] -= 3.3
-    s = panel.block_stats(d, e, np.ones((N, 1), dtype=bool), rng.normal(size=(N, 3)))
+    s = block_sums.block_stats(d, e, np.ones((N, 1), dtype=bool), rng.normal(size=(N, 3)))
     assert s["out"][0, 4] >= 24                      # the burst is down-weighted ...
     mean = s["s1"][0] / s["n"][0]
     assert abs(mean[4]) < 4.0 / np.sqrt(1000)        # ... and its block's inlier mean is noise

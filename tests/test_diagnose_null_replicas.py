@@ -18,7 +18,7 @@ import null_suite  # noqa: E402
 from mkc_stream.diagnose import diagnose  # noqa: E402
 from mkc_stream.diagnose.baseline import fit_baseline, hf_sigma  # noqa: E402
 from mkc_stream.diagnose.frame import prepare  # noqa: E402
-from mkc_stream.diagnose.panel import between_outliers  # noqa: E402
+from mkc_stream.diagnose.block_sums import between_outliers  # noqa: E402
 from mkc_stream.diagnose.replicas import shifted  # noqa: E402
 
 

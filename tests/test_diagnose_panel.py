@@ -1,12 +1,12 @@
 """The panel's per-block sums and the coloured-noise fit's block offsets against plain loops.
 
-The vectorised code (one sparse product per grouping, running sums for the Allan means, one
+The vectorised code (one pass of per-group sums per grouping, running sums for the Allan means, one
 stacked solve) must give the sums a sample-by-sample loop gives.
 """
 import numpy as np
 import pytest
 
-from mkc_stream.diagnose import panel
+from mkc_stream.diagnose import block_sums, panel
 from mkc_stream.diagnose.baseline import fit_baseline
 from mkc_stream.diagnose.engine import Engine
 from mkc_stream.diagnose.forms import _offsets, _variogram
@@ -34,10 +34,10 @@ def sample(engine):
 
 def test_block_sums_match_a_loop_over_blocks(sample):
     d, e, valid, raw = sample
-    s = panel.block_stats(d, e, valid, raw)
+    s = block_sums.block_stats(d, e, valid, raw)
     z = e / d.sigma[None, :]
     far = valid & ~(np.abs(z) < 4.0)
-    inl = valid & ~far & ~panel.between_outliers(far)   # a burst's interior is not an inlier
+    inl = valid & ~far & ~block_sums.between_outliers(far)   # a burst's interior is not an inlier
     tri = [(i, j) for i in range(6) for j in range(i, 6)]
     for b in range(d.n_blocks):
         blk = d.block == b
@@ -76,10 +76,10 @@ def test_block_sums_match_a_loop_over_blocks(sample):
 
 def test_allan_variance_sums_match_the_definition(sample):
     d, e, valid, raw = sample
-    s = panel.block_stats(d, e, valid, raw)
+    s = block_sums.block_stats(d, e, valid, raw)
     z = e / d.sigma[None, :]
     far = valid & ~(np.abs(z) < 4.0)
-    inl = valid & ~far & ~panel.between_outliers(far)   # a burst's interior is not an inlier
+    inl = valid & ~far & ~block_sums.between_outliers(far)   # a burst's interior is not an inlier
     zi = np.where(inl, z, 0.0)
     lens = np.array([sl.stop - sl.start for sl in d.slices])
     L = int(lens.min())
@@ -122,3 +122,110 @@ def test_block_offsets_and_their_variogram_match_plain_loops(engine):
         d2 = [np.sum((o[b + k] - o[b]) ** 2) for b in range(frame.n_blocks - k)
               if mult[b] > 0 and mult[b + k] > 0 and np.isfinite(o[b]).all() and np.isfinite(o[b + k]).all()]
         assert g[k - 1] == pytest.approx(np.mean(d2), rel=1e-12)
+
+
+def test_group_sums_add_each_group_in_sample_order():
+    """The one-pass group sums are the additions np.bincount makes (sample order, from 0.0), to
+    the last bit; -1 is no group."""
+    from mkc_stream.diagnose.panel_sums import group_sums, regression_sums
+
+    rng = np.random.default_rng(11)
+    n, G = 3000, 7
+    groups = np.stack([rng.integers(-1, G, n), rng.integers(-1, 3, n)], axis=1).astype(np.int64)
+    X = rng.standard_t(3, size=(n, 4))
+    out = group_sums(groups, G, X)
+    for q in range(2):
+        ok = groups[:, q] >= 0
+        for j in range(4):
+            np.testing.assert_array_equal(out[q, :, j], np.bincount(groups[ok, q], X[ok, j], minlength=G))
+    PP, P = rng.normal(size=(n, 21)), rng.normal(size=(n, 6))
+    fi, zi = (rng.random((n, 2)) > 0.2).astype(float), rng.normal(size=(n, 2))
+    R = regression_sums(groups, G, PP, P, fi, zi)
+    for q in range(2):
+        ok = groups[:, q] >= 0
+        for c in range(2):
+            for j in range(21):
+                np.testing.assert_array_equal(R[q, :, c, j], np.bincount(groups[ok, q], PP[ok, j] * fi[ok, c],
+                                                                         minlength=G))
+            for j in range(6):
+                np.testing.assert_array_equal(R[q, :, c, 21 + j], np.bincount(groups[ok, q], P[ok, j] * zi[ok, c],
+                                                                              minlength=G))
+
+
+def test_a_panel_for_several_weightings_is_each_weighting_s_panel(sample):
+    """Panel rows for M block weightings at once equal the panels of each weighting alone:
+    values, weights (a per-block weight), floors, families and labels."""
+    d, e, valid, raw = sample
+    s = block_sums.block_stats(d, e, valid, raw)
+    rng = np.random.default_rng(4)
+    mults = rng.integers(0, 3, size=(3, d.n_blocks)).astype(float)
+    p = panel.evaluate(d, s, mults, kernel=False)
+    v, w, f = p.matrices()
+    np.testing.assert_array_equal(p.values(), v)
+    assert v.shape == w.shape == f.shape == (3, len(p.labels)) and len(p.family) == len(p.labels)
+    for m in range(3):
+        one = panel.evaluate(d, s, mults[m], kernel=False)
+        x1, w1, f1 = one.arrays()
+        np.testing.assert_allclose(v[m], x1, rtol=1e-12, atol=1e-12, equal_nan=True)
+        np.testing.assert_allclose(w[m], w1, rtol=1e-12, atol=1e-12, equal_nan=True)
+        np.testing.assert_allclose(f[m], f1, rtol=1e-12, atol=1e-12, equal_nan=True)
+        assert one.labels == p.labels and one.family == p.family
+    # a block left out by a weighting weighs 0 in the time family, whose weights are per block
+    time = np.array([fam == "time" for fam in p.family])
+    np.testing.assert_array_equal(w[:, time], np.tile(np.repeat(mults, 6, axis=1), (1, d.C)))
+
+
+def test_replicas_share_their_recorded_sums_and_score_as_if_recomputed(engine):
+    """A replica's raw-value and clock sums are computed once per set of replicas and shared by
+    every candidate scored on it; scoring with them equals scoring from scratch."""
+    from mkc_stream.diagnose.engine import Candidate
+
+    ev = engine.evaluate(Candidate())
+    again = engine.evaluate(Candidate())                  # another candidate object, the same replicas
+    for bs, bs2 in zip(ev.rep_bs, again.rep_bs):
+        assert bs["lat_c"] is bs2["lat_c"]                  # the same cached sums
+    fresh = Engine(engine.frame, engine.base, n_replicas=4)
+    ev2 = fresh.evaluate(Candidate())
+    np.testing.assert_array_equal(ev.rep_values, ev2.rep_values)
+    from mkc_stream.diagnose.baseline import estimate_bursts
+
+    bursts = estimate_bursts(ev.e[:, 0], ev.valid[:, 0], engine.base.sigma[0])     # as evaluate() has it
+    r_norm, raw = engine._norm(Candidate(), engine.R, bursts)
+    clocks = engine._clock(Candidate(), engine.R) if engine.frame.timestamps_real else [None] * engine.R
+    for k, bs in enumerate(ev.rep_bs):
+        want = block_sums.recorded_stats(engine.design, raw[k], clocks[k])
+        for key in ("lat_c", "lat_s", "pile", "raw_n", "clock"):
+            np.testing.assert_array_equal(bs[key], want[key])
+
+
+def test_bootstrap_noise_fits_equal_fits_without_the_per_block_cache(engine):
+    """The coloured-noise estimator keeps per-block pieces across block weightings (the
+    bootstrap's 40 resamples); an estimate after other weightings equals one from a fresh cache."""
+    from mkc_stream.diagnose.engine import Candidate
+    from mkc_stream.diagnose.forms import Env
+    from mkc_stream.sim.effects import noise_fit
+
+    ev = engine.evaluate(Candidate())
+    rng = np.random.default_rng(2)
+    mults = [rng.integers(0, 3, size=engine.frame.n_blocks).astype(float) for _ in range(3)]
+    warm = Env(engine.frame, engine.base)
+    for m in mults[:2]:
+        noise_fit._within_block_excess(warm, noise_fit._noise_samples(warm, ev), m)
+        noise_fit._block_mean_share_norm(warm, m, 2.0)
+    cold = Env(engine.frame, engine.base)
+    a = noise_fit._within_block_excess(warm, noise_fit._noise_samples(warm, ev), mults[2])
+    b = noise_fit._within_block_excess(cold, noise_fit._noise_samples(cold, ev), mults[2])
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    # against the autocovariance summed over the weighting's blocks directly
+    slices = [sl for sl, w in zip(engine.frame.block_slices(), mults[2]) if w > 0]
+    real, reps = noise_fit._noise_samples(cold, ev)
+    K, sig = a[0].size - 1, engine.base.sigma[0]
+    s, c = noise_fit._acov(real.e / sig, real.ok, slices, K)
+    rep = np.array([(lambda sc: sc[0] / np.maximum(sc[1], 1))(noise_fit._acov(r.e / sig, r.ok, slices, K))
+                    for r in reps])
+    np.testing.assert_array_equal(a[1], s / np.maximum(c, 1) - rep.mean(axis=0))
+    assert noise_fit._block_mean_share_norm(warm, mults[2], 2.0) == noise_fit._block_mean_share_norm(cold, mults[2],
+                                                                                                       2.0)
+    keep = [b for b, w in enumerate(mults[2]) if w > 0]
+    assert len(keep) < engine.frame.n_blocks       # a resample leaves blocks out

@@ -182,6 +182,18 @@ def _excess(C, K, med, half, i, j):
     return s - k * med[np.clip(i - half - 1, 0, n - 1)], s - k * med[np.clip(j + half, 0, n - 1)], k
 
 
+def _window_excess(C, K, med, half, L):
+    """:func:`_excess` of every box [i, i + L), i = 0 .. n - L, by slices (the same values)."""
+    n = med.size
+    m = n - L + 1
+    k = K[L:L + m] - K[:m]
+    s = C[L:L + m] - C[:m]
+    # med[clip(i - half - 1)] and med[clip(i + L + half)]
+    before = np.concatenate([np.full(min(half + 1, m), med[0]), med[:max(m - half - 1, 0)]])
+    after = np.concatenate([med[min(L + half, n - 1):n], np.full(max(m - (n - L - half), 0), med[n - 1])])[:m]
+    return s - k * before, s - k * after, k
+
+
 def scan_runs(z, ok, windows=SCAN_WINDOWS, cut=SCAN_CUT, longest=BURST_WINDOW // 2):
     """(N,) bool: the short runs of ``z`` (a residual in white-noise units) that stand out from the
     level before them AND from the level after them, jointly improbable although no sample is an
@@ -211,22 +223,24 @@ def scan_runs(z, ok, windows=SCAN_WINDOWS, cut=SCAN_CUT, longest=BURST_WINDOW //
     scale = np.ones(len(windows))
     mark = np.zeros(n + 1)
 
+    def statistic(left, right, k, s_box):
+        same = np.sign(left) == np.sign(right)
+        return np.where(same, np.minimum(np.abs(left), np.abs(right)), 0.0) / (s_box * np.sqrt(np.maximum(k, 1.0)))
+
     def both_sides(i, j, s_box):
         left, right, k = _excess(C, K, med, half, i, j)
-        same = np.sign(left) == np.sign(right)
-        T = np.where(same, np.minimum(np.abs(left), np.abs(right)), 0.0) / (s_box * np.sqrt(np.maximum(k, 1.0)))
-        return T, k
+        return statistic(left, right, k, s_box), k
 
     for w, L in enumerate(windows):
         if L > n:
             scale[w:] = scale[w - 1] if w else 1.0
             break
         i = np.arange(n - L + 1)
-        left, _, k = _excess(C, K, med, half, i, i + L)
+        left, right, k = _window_excess(C, K, med, half, L)
         full = (k >= L)[:: max(1, L // 2)]
         if full.sum() > 20:
             scale[w] = max(1.0, mad_sd(left[:: max(1, L // 2)][full]) / np.sqrt(L))
-        T, k = both_sides(i, i + L, scale[w])
+        T = statistic(left, right, k, scale[w])
         start = np.flatnonzero((T > cut) & (k >= L / 2))
         np.add.at(mark, start, 1.0)
         np.add.at(mark, start + L, -1.0)

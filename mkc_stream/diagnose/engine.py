@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import gap, panel
+from . import block_sums, gap, panel
 from .baseline import BurstReplica, estimate_bursts
 from .forms import FORMS, Env, MeanForm, colored_white_share
 from .model import ModelFit, Term, fit_model, project, quick_rss
@@ -142,6 +142,8 @@ class Engine:
         self.design = panel.make_design(frame, base.fit.v, base.sigma, extra, q, ph, tol, rot, u_raw=u_raw)
         self._norm_cache = {}
         self._clock_cache = {}
+        self._recorded_cache = {}
+        self._real_recorded = None
         self._ref_cache = {}        # the catch-alls' reference replicas (see evaluate)
         self._scored = {}           # id(cand) -> (cand, R, Evaluation): what _refined already scored
         self._design_cache = {}
@@ -245,7 +247,10 @@ class Engine:
         # the burst model comes from the candidate's own residual: a baseline that misses an
         # effect calls the effect's large residuals "bursts"
         bursts = estimate_bursts(e[:, 0], valid[:, 0], base.sigma[0])
-        real_bs = panel.block_stats(self.design, e, valid, frame.m, frame.t if frame.timestamps_real else None)
+        clock_t = frame.t if frame.timestamps_real else None
+        if self._real_recorded is None:
+            self._real_recorded = block_sums.recorded_stats(self.design, frame.m, clock_t)
+        real_bs = block_sums.block_stats(self.design, e, valid, frame.m, clock_t, self._real_recorded)
         rep_bs, rep_e, rep_valid, raw = self._replica_stats(cand, fits, folds, e, valid, bursts, R)
         ref = None
         if any(n in CATCH_ALL for n in cand.estimated):
@@ -258,7 +263,7 @@ class Engine:
                 ref_bs, _, _, _ = self._replica_stats(plain, fits, folds, e, valid, bursts, R)
                 if len(self._ref_cache) > 8:
                     self._ref_cache.clear()
-                self._ref_cache[key] = np.array([panel.evaluate(self.design, bs, self.all_mult).arrays()[0]
+                self._ref_cache[key] = np.array([panel.evaluate(self.design, bs, self.all_mult).values()[0]
                                                  for bs in ref_bs])
             ref = self._ref_cache[key]
         if not in_sample:              # the candidate carries the first fold's settings (magnitudes, reports)
@@ -311,10 +316,24 @@ class Engine:
             for f, ft in zip(folds, fits):
                 pe = project(r, rep_valid, ft.X, f, base.sigma, valid)
                 rep_e[:, ~f] = pe[:, ~f]
-        clocks = self._clock(cand, R)
-        rep_bs = [panel.block_stats(d, rep_e[k], rep_valid[k], raw[k], clocks[k] if frame.timestamps_real else None)
-                  for k in range(R)]
+        clocks = self._clock(cand, R) if frame.timestamps_real else None
+        recorded = self._recorded(raw, clocks, R)
+        rep_bs = [block_sums.block_stats(d, rep_e[k], rep_valid[k], raw[k], None if clocks is None else clocks[k],
+                                    recorded[k]) for k in range(R)]
         return rep_bs, rep_e, rep_valid, r
+
+    def _recorded(self, raw, clocks, R):
+        """Each replica's :func:`.block_sums.recorded_stats`, kept while its (cached) raw values and
+        clocks are: every candidate with the same noise effects scores on the same ones."""
+        key = (id(raw), id(clocks), R)
+        hit = self._recorded_cache.get(key)
+        if hit is None or hit[0] is not raw or hit[1] is not clocks:
+            if len(self._recorded_cache) > 24:
+                self._recorded_cache.clear()
+            hit = (raw, clocks, [block_sums.recorded_stats(self.design, raw[k], None if clocks is None else clocks[k])
+                                 for k in range(R)])
+            self._recorded_cache[key] = hit
+        return hit[2]
 
     def _score(self, cand, fit, valid, real_bs, rep_bs, rep_e, rep_valid, mult, ref=None):
         d = self.design
@@ -327,7 +346,7 @@ class Engine:
             scope = self.base.scope
             self.gi = gap.GapIndex(pr.family, [c for c, _ in pr.labels],
                                    off=None if scope is None else scope.family_reason)
-        reps = np.array([panel.evaluate(d, bs, mult).arrays()[0] for bs in rep_bs])
+        reps = np.array([panel.evaluate(d, bs, mult).values()[0] for bs in rep_bs])
         ev = Evaluation(cand, fit, valid, real_bs, rep_bs, rep_e, rep_valid, mult, x, reps, w, fl,
                         gap.zscores(x, reps, fl), float("nan"), ref)
         ev.G = self.gap_of(ev)
@@ -345,7 +364,7 @@ class Engine:
         replica are re-aggregated over the same resampled blocks (a consistent bootstrap)."""
         d = self.design
         x, w, fl = panel.evaluate(d, ev.real_bs, mults, kernel=False).matrices()
-        reps = np.stack([panel.evaluate(d, bs, mults, kernel=False).matrices()[0] for bs in ev.rep_bs])
+        reps = np.stack([panel.evaluate(d, bs, mults, kernel=False).values() for bs in ev.rep_bs])
         pen = self._penalty(ev, ev.rep_values)
         out = np.empty(mults.shape[0])
         for m in range(mults.shape[0]):

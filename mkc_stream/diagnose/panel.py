@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .baseline import hidden_bursts
 
 HIST_EDGES = np.arange(-8.0, 8.0 + 1e-9, 0.25)
 N_HIST = HIST_EDGES.size + 1            # + under/overflow
@@ -43,9 +42,10 @@ TAUS = (1, 2, 4, 8, 16, 32)
 N_BANDS_Z, N_SECTORS = 3, 6
 REG_NAMES = ("mean", "v_x", "v_y", "v_z", "aniso_x", "aniso_y")
 _TRI = [(i, j) for i in range(6) for j in range(i, 6)]
+_SYM6 = np.zeros((6, 6), dtype=np.intp)    # _SYM6[i, j]: the packed index of (min, max)
+for _k, (_i, _j) in enumerate(_TRI):
+    _SYM6[_i, _j] = _SYM6[_j, _i] = _k
 CHANNEL_NAMES = ("norm", "dip")
-#: samples: outliers this close are one burst (see :func:`between_outliers`)
-BURST_GAP = 10
 
 
 def direction_cell(v: np.ndarray) -> np.ndarray:
@@ -132,208 +132,13 @@ def make_design(frame, v, sigma, extra_aux: dict, lattice_q, lattice_phase, pile
                        quart=None if u_raw is None else quartic_basis(u_raw, v))
 
 
-def _bc(idx, w, size):
-    return np.bincount(idx, weights=w, minlength=size)
-
-
-def _indicator(idx, size):
-    from scipy.sparse import csr_matrix
-
-    ok = idx >= 0
-    n = idx.shape[0]
-    return csr_matrix((np.ones(int(ok.sum())), (idx[ok], np.flatnonzero(ok))), shape=(size, n))
-
-
-def indicators(d: PanelDesign):
-    """Sparse one-hot matrices (groups x samples) for blocks, block x cell, block x aux bin."""
-    if getattr(d, "_ind", None) is None:
-        B, K = d.n_blocks, d.n_cells
-        ind = {"block": _indicator(d.block, B), "cell": _indicator(d.block * K + d.cell, B * K)}
-        for name, bins in d.aux_bins.items():
-            ind["aux:" + name] = _indicator(np.where(bins >= 0, d.block * N_AUX_BINS + bins, -1), B * N_AUX_BINS)
-        d._ind = ind
-    return d._ind
-
-
-def between_outliers(out, gap=BURST_GAP):
-    """(N, C) samples that are not outliers but lie between two outliers at most ``gap`` samples
-    apart: a burst's interior. A burst's norm residual crosses zero wherever its offset turns
-    perpendicular to the field, and those samples, kept as inliers, shifted the block means and
-    regressions of a recording with bursts (z 5-7 on nulls) by where its bursts happened to be.
-    Two 4-sigma outliers of white noise fall that close about once in 10^7 samples."""
-    n = out.shape[0]
-    idx = np.arange(n)[:, None]
-    far = n + 2 * gap + 2
-    prev = np.maximum.accumulate(np.where(out, idx, -far), axis=0)
-    nxt = np.minimum.accumulate(np.where(out, idx, n + far)[::-1], axis=0)[::-1]
-    return (nxt - prev <= gap) & ~out
-
-
-def block_stats(d: PanelDesign, e, valid, raw, clock_t=None) -> dict:
-    """Per-block sufficient statistics of one recording (real or replica)."""
-    B, C, K = d.n_blocks, d.C, d.n_cells
-    ind = indicators(d)
-    z = e / d.sigma[None, :]
-    far = valid & ~(np.abs(z) < 4.0)
-    inl = valid & ~far & ~between_outliers(far)
-    # a burst whose offset lies almost across the field has no 4-sigma sample; the scan flags it
-    # in the norm channel alike in the recording and in every replica
-    far[:, 0] |= hidden_bursts(z[:, 0], inl[:, 0])
-    inl = valid & ~far & ~between_outliers(far)
-    out = valid & ~inl
-    zi = np.where(inl, z, 0.0)
-    fi = inl.astype(float)
-    fv = valid.astype(float)
-    s = {}
-    hidx = np.clip(np.searchsorted(HIST_EDGES, z, side="right"), 0, N_HIST - 1)
-    s["hist"] = np.stack([_bc(d.block * N_HIST + hidx[:, c], fv[:, c], B * N_HIST)
-                          .reshape(B, N_HIST) for c in range(C)])
-    # one sparse product per grouping. Counts and moments [inl, z, z^2, valid, out] per channel
-    # go to blocks and cells; the regression sums [PP*inl (21), P*z (6)] per channel to blocks
-    # and aux bins (cells never use them: they would be a third of the work for nothing)
-    N = z.shape[0]
-    W = np.empty((N, 5 * C))
-    reg = np.empty((N, 27 * C))
-    for c in range(C):
-        W[:, 5 * c] = fi[:, c]
-        W[:, 5 * c + 1] = zi[:, c]
-        W[:, 5 * c + 2] = zi[:, c] ** 2
-        W[:, 5 * c + 3] = fv[:, c]
-        W[:, 5 * c + 4] = out[:, c]
-        np.multiply(d.PP, fi[:, c:c + 1], out=reg[:, 27 * c: 27 * c + 21])
-        np.multiply(d.P, zi[:, c:c + 1], out=reg[:, 27 * c + 21: 27 * c + 27])
-    Wb = ind["block"] @ W                            # (B, 5 C)
-    Rb = ind["block"] @ reg                          # (B, 27 C)
-    Wk = (ind["cell"] @ W).reshape(B, K, 5 * C)
-    s["n"], s["s1"], s["s2"], s["nvalid"], s["out"] = (Wb[:, k::5].T.copy() for k in range(5))
-    s["tXX"] = np.stack([Rb[:, 27 * c: 27 * c + 21] for c in range(C)])
-    s["tXe"] = np.stack([Rb[:, 27 * c + 21: 27 * c + 27] for c in range(C)])
-    s["cell_n"] = np.stack([Wk[..., 5 * c] for c in range(C)])
-    s["cell_s"] = np.stack([Wk[..., 5 * c + 1] for c in range(C)])
-    s["cell_valid"] = Wk[..., 3].copy()
-    s["cell_out"] = Wk[..., 4].copy()
-    for name in d.aux_bins:
-        A = (ind["aux:" + name] @ reg).reshape(B, N_AUX_BINS, 27 * C)
-        s["aXX:" + name] = np.stack([A[..., c * 27: c * 27 + 21] for c in range(C)])
-        s["aXe:" + name] = np.stack([A[..., c * 27 + 21: c * 27 + 27] for c in range(C)])
-    if d.rot is not None and C == 2:
-        rr = np.empty((N, 9))
-        for k, (i, j) in enumerate((i, j) for i in range(3) for j in range(i, 3)):
-            np.multiply(d.rot[:, i], d.rot[:, j] * fi[:, 1], out=rr[:, k])
-        np.multiply(d.rot, zi[:, 1:2], out=rr[:, 6:])
-        Wr = ind["block"] @ rr
-        s["rXX"], s["rXe"] = Wr[:, :6], Wr[:, 6:]
-    if d.quart is not None:
-        qz = np.empty((N, 6))
-        np.multiply(d.quart, zi[:, :1], out=qz[:, :3])
-        np.multiply(d.quart ** 2, fi[:, :1], out=qz[:, 3:])
-        Wq = ind["block"] @ qz
-        s["qe"], s["qq"] = Wq[:, :3], Wq[:, 3:]
-    _spectral(d, s, zi, inl)
-    _raw(d, s, raw)
-    _timing(d, s, clock_t)
-    s["e_norm"] = [z[sl, 0][valid[sl, 0]] for sl in d.slices]
-    return s
-
-
-def _spectral(d, s, zi, inl):
-    """Octave-band periodogram, Allan variance and third-difference noise, per block.
-
-    All blocks are cut to the shortest block's length so one FFT covers them all.
-    """
-    B, C = d.n_blocks, d.C
-    nb = BAND_FRACTIONS.size - 1
-    lens = np.array([sl.stop - sl.start for sl in d.slices])
-    L = int(lens[lens > 0].min()) if (lens > 0).any() else 0
-    spec = np.zeros((C, B, nb))
-    spec_n = np.zeros((C, B, nb))
-    av = np.zeros((C, B, len(TAUS)))
-    av_n = np.zeros((C, B, len(TAUS)))
-    # third differences within blocks
-    d3 = zi[3:] - 3 * zi[2:-1] + 3 * zi[1:-2] - zi[:-3]
-    good = inl[3:] & inl[2:-1] & inl[1:-2] & inl[:-3] & (d.block[3:] == d.block[:-3])[:, None]
-    hf = np.stack([_bc(d.block[3:], np.where(good[:, c], d3[:, c] ** 2, 0.0) / 20.0, B) for c in range(C)])
-    hf_n = np.stack([_bc(d.block[3:], good[:, c].astype(float), B) for c in range(C)])
-    if L >= 16:
-        ok_b = lens >= L
-        starts = np.array([sl.start for sl in d.slices])
-        idx = starts[:, None] + np.arange(L)[None, :]
-        idx[~ok_b] = 0
-        x = zi[idx]                               # (B, L, C)
-        m = inl[idx]
-        cnt = np.maximum(m.sum(axis=1, keepdims=True), 1)
-        x = np.where(m, x - x.sum(axis=1, keepdims=True) / cnt, 0.0)
-        x[~ok_b] = 0.0
-        P = np.abs(np.fft.rfft(x, axis=1)) ** 2 / L     # (B, F, C)
-        f = np.arange(P.shape[1]) / L * 2.0
-        band = np.searchsorted(BAND_FRACTIONS, f, side="right") - 1
-        for k in range(nb):
-            sel = (band == k) & (f > 0)
-            if sel.any():
-                spec[:, :, k] = P[:, sel, :].sum(axis=1).T
-                spec_n[:, :, k] = sel.sum() * ok_b
-        for i, tau in enumerate(TAUS):
-            k = L // tau
-            if k < 4:
-                continue
-            # the mean over tau as a running sum of slices: the same additions in the same
-            # order as .mean(axis=2), a third of its time (strided reductions are slow)
-            xr = x[:, :k * tau].reshape(B, k, tau, C)
-            means = xr[:, :, 0, :].copy()
-            for j in range(1, tau):
-                means += xr[:, :, j, :]
-            means /= tau
-            dm = np.diff(means, axis=1)
-            av[:, :, i] = (0.5 * np.sum(dm * dm, axis=1)).T * ok_b
-            av_n[:, :, i] = (k - 1) * ok_b
-    s.update(spec=spec, spec_n=spec_n, avar=av, avar_n=av_n, hf=hf, hf_n=hf_n)
-
-
-def _raw(d, s, raw):
-    B = d.n_blocks
-    ph = 2 * np.pi * (raw - d.lattice_phase) / d.lattice_q
-    cols = np.empty((raw.shape[0], 12))          # cos, sin of the lattice phase; at max, at min
-    for j in range(3):          # column by column as before: numpy's SIMD paths may differ by layout
-        cols[:, j] = np.cos(ph[:, j])
-        cols[:, 3 + j] = np.sin(ph[:, j])
-    cols[:, 6:9] = raw >= raw.max(axis=0) - d.pile_tol
-    cols[:, 9:12] = raw <= raw.min(axis=0) + d.pile_tol
-    # contiguous (12, B): einsum sums a strided view in another order (last-bit changes)
-    sums = np.ascontiguousarray((indicators(d)["block"] @ cols).T)
-    s["lat_c"], s["lat_s"] = sums[0:3], sums[3:6]
-    s["raw_n"] = np.bincount(d.block, minlength=B).astype(float)
-    s["pile"] = np.stack([sums[[6 + j, 9 + j]] for j in range(3)])
-
-
-def _timing(d, s, t):
-    B = d.n_blocks
-    z = np.zeros((8, B))
-    if t is not None and len(t) > 2:
-        dt = np.diff(t) / d.dt0
-        blk = np.clip(np.searchsorted(d.block_edges_t, t[1:], side="right") - 1, 0, B - 1)
-        normal = (dt > 0.5) & (dt < 1.5)
-        z[0] = _bc(blk, normal.astype(float), B)
-        z[1] = _bc(blk, np.where(normal, np.abs(dt - 1.0), 0.0), B)
-        z[2] = _bc(blk, np.where(normal, (dt - 1.0) ** 2, 0.0), B)
-        z[3] = _bc(blk, np.where(dt >= 1.5, np.round(dt) - 1.0, 0.0), B)
-        z[4] = _bc(blk, (dt <= 0.5).astype(float), B)
-        z[5] = _bc(blk, (dt >= 1.5).astype(float), B)
-        z[6] = _bc(blk, np.where(normal, (dt - 1.0) ** 4, 0.0), B)
-        z[7] = _bc(blk, np.where(normal, dt - 1.0, 0.0), B)
-    s["clock"] = z
-
-
 # ---------------------------------------------------------------------------------------------
 # from block sums to the panel
 # ---------------------------------------------------------------------------------------------
 
 def _solve6(XX21, Xe):
     """Coefficients of the 6-regressor fit from packed X^T X (..., 21) and X^T e (..., 6)."""
-    shape = XX21.shape[:-1]
-    A = np.zeros(shape + (6, 6))
-    for k, (i, j) in enumerate(_TRI):
-        A[..., i, j] = XX21[..., k]
-        A[..., j, i] = XX21[..., k]
+    A = XX21[..., _SYM6]                          # (..., 6, 6), both triangles from the packed one
     n = A[..., 0, 0]
     ridge = 1e-3 * np.maximum(n, 1e-12)
     A = A + ridge[..., None, None] * np.eye(6)
@@ -346,17 +151,15 @@ def _quantiles(h, qs):
     """Quantiles (in sigma) from histograms (..., N_HIST) over HIST_EDGES with under/overflow bins."""
     c = np.cumsum(h, axis=-1)
     tot = c[..., -1:]
-    out = []
-    for q in qs:
-        target = q * tot
-        k = np.clip(np.sum(c < target, axis=-1, keepdims=True), 0, N_HIST - 1)
-        prev = np.where(k > 0, np.take_along_axis(c, np.maximum(k - 1, 0), axis=-1), 0.0)
-        hk = np.maximum(np.take_along_axis(h, k, axis=-1), 1e-12)
-        lo = HIST_EDGES[np.clip(k - 1, 0, HIST_EDGES.size - 1)]
-        val = lo + 0.25 * (target - prev) / hk
-        val = np.where(k == 0, HIST_EDGES[0], np.where(k >= N_HIST - 1, HIST_EDGES[-1], val))
-        out.append(np.where(tot > 0, val, np.nan)[..., 0])
-    return out
+    target = np.asarray(qs, dtype=np.float64) * tot                       # (..., Q), all at once
+    k = np.clip(np.sum(c[..., None, :] < target[..., None], axis=-1), 0, N_HIST - 1)
+    prev = np.where(k > 0, np.take_along_axis(c, np.maximum(k - 1, 0), axis=-1), 0.0)
+    hk = np.maximum(np.take_along_axis(h, k, axis=-1), 1e-12)
+    lo = HIST_EDGES[np.clip(k - 1, 0, HIST_EDGES.size - 1)]
+    val = lo + 0.25 * (target - prev) / hk
+    val = np.where(k == 0, HIST_EDGES[0], np.where(k >= N_HIST - 1, HIST_EDGES[-1], val))
+    val = np.where(tot > 0, val, np.nan)
+    return [val[..., i] for i in range(len(qs))]
 
 
 def _kernel(z):
@@ -373,35 +176,43 @@ def _kernel(z):
 
 class Panel:
     """Values (M, K), weights (M, K), floors (M, K), families and labels of a panel evaluated for
-    M block weightings at once (M = 1 for one weighting)."""
+    M block weightings at once (M = 1 for one weighting). Floors, weights and labels are built
+    only when asked for: a replica's panel is read for its values alone."""
 
     def __init__(self, M):
         self.M = M
-        self._v, self._w, self._f = [], [], []
-        self.family, self.labels = [], []
+        self._parts = []            # (family, channel, labels, values (M, n), floors, weights)
 
     def add(self, family, channel, labels, values, floors, weights=1.0):
-        M = self.M
-        values = np.asarray(values, dtype=np.float64).reshape(M, -1)
-        n = values.shape[1]
-        if isinstance(labels, str):
-            labels = [labels]
-        self._v.append(values)
-        self._f.append(self._shape(floors, M, n))
-        self._w.append(self._shape(weights, M, n))
-        self.family += [family] * n
-        self.labels += [(channel, lab) for lab in labels]
+        values = np.asarray(values, dtype=np.float64).reshape(self.M, -1)
+        self._parts.append((family, channel, [labels] if isinstance(labels, str) else labels, values, floors,
+                            weights))
 
-    @staticmethod
-    def _shape(x, M, n):
-        """A scalar, a per-statistic (n,) row, or a full (M, n) array, as (M, n)."""
-        x = np.asarray(x, dtype=np.float64)
-        if x.ndim == 0 or x.shape == (n,):
-            return np.broadcast_to(x, (M, n))
-        return x.reshape(M, n)
+    @property
+    def family(self) -> list:
+        return [p[0] for p in self._parts for _ in range(p[3].shape[1])]
+
+    @property
+    def labels(self) -> list:
+        return [(p[1], lab) for p in self._parts for lab in p[2]]
+
+    def values(self) -> np.ndarray:
+        return np.concatenate([p[3] for p in self._parts], 1)
+
+    def _filled(self, k):
+        """Floors (k = 4) or weights (k = 5) as (M, K): each part's scalar, per-statistic (n,) row
+        or full (M, n) array."""
+        out = np.empty((self.M, sum(p[3].shape[1] for p in self._parts)))
+        i = 0
+        for p in self._parts:
+            n = p[3].shape[1]
+            x = np.asarray(p[k], dtype=np.float64)
+            out[:, i:i + n] = x if x.ndim == 0 or x.shape == (n,) else x.reshape(self.M, n)
+            i += n
+        return out
 
     def matrices(self):
-        return np.concatenate(self._v, 1), np.concatenate(self._w, 1), np.concatenate(self._f, 1)
+        return self.values(), self._filled(5), self._filled(4)
 
     def arrays(self):
         v, w, f = self.matrices()
@@ -413,6 +224,26 @@ def _binom_floor(p, n):
     return np.sqrt(np.maximum(np.nan_to_num(p), 1.0 / n) / n)
 
 
+def _labels(d: PanelDesign) -> dict:
+    """The panel's labels that depend on the design only (built once: the panel is evaluated
+    for every replica and bootstrap)."""
+    if getattr(d, "_lab", None) is None:
+        blab = [f"{d.block_t0[b]:.0f}-{d.block_edges_t[b + 1]:.0f} s" for b in range(d.n_blocks)]
+        cells = [cell_label(k) for k in range(d.n_cells)]
+        aux = {}
+        for name in d.aux_bins:
+            edges = d.aux_edges[name]
+            labs = []
+            for k in range(N_AUX_BINS):
+                lab = f"{edges[k]:.3g}..{edges[k + 1]:.3g}" if k + 1 < edges.size else "-"
+                labs += [f"{lab} {r}" for r in REG_NAMES]
+            aux[name] = labs + [f"trend over its span: {r}" for r in REG_NAMES[:4]]
+        d._lab = {"cells": cells, "time": [f"{bl} {r}" for bl in blab for r in REG_NAMES],
+                  "weights_block": [f"down-weighted {bl}" for bl in blab],
+                  "weights_cell": [f"down-weighted in {lab}" for lab in cells], "aux": aux}
+    return d._lab
+
+
 def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> Panel:
     """The panel over blocks weighted by ``mult`` (B,) or (M, B) (1 = use once, 0 = leave out).
     kernel=False leaves the (costlier) kernel statistics undefined (bootstraps)."""
@@ -421,6 +252,7 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
     p = Panel(M)
     C = d.C
     ch = CHANNEL_NAMES
+    lab = _labels(d)
     aggc = lambda x: np.einsum("cb...,mb->mc...", x, mult)  # noqa: E731  (channel, block, ...) -> (M, C, ...)
     agg = lambda x: np.einsum("b...,mb->m...", x, mult)     # noqa: E731
     # distribution
@@ -456,17 +288,14 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
     p.add("kernel", "norm", "log d", ks[:, 1], 0.02)
     # sphere
     cn, cs = aggc(s["cell_n"]), aggc(s["cell_s"])        # (M, C, K)
-    labels_cells = [cell_label(k) for k in range(d.n_cells)]
     for c in range(C):
-        p.add("sphere", ch[c], labels_cells, np.where(cn[:, c] >= 20, cs[:, c] / np.maximum(cn[:, c], 1), np.nan), 1e-3)
+        p.add("sphere", ch[c], lab["cells"], np.where(cn[:, c] >= 20, cs[:, c] / np.maximum(cn[:, c], 1), np.nan), 1e-3)
     # time: per block regression, weighted by multiplicity
     coef = _solve6(s["tXX"], s["tXe"])          # (C, B, 6)
-    blab = [f"{d.block_t0[b]:.0f}-{d.block_edges_t[b + 1]:.0f} s" for b in range(d.n_blocks)]
-    tl = [f"{bl} {r}" for bl in blab for r in REG_NAMES]
     wt = np.repeat(mult, 6, axis=1)
     for c in range(C):
         vals = np.where(wt > 0, coef[c].reshape(1, -1), np.nan)
-        p.add("time", ch[c], tl, vals, 1e-3, wt)
+        p.add("time", ch[c], lab["time"], vals, 1e-3, wt)
     # changes: how the block-wise apparent hard iron moves (a step jumps once, a drift moves
     # evenly, a random walk wanders, noise does not move at all)
     tc = d.block_t0 - d.block_t0.mean()
@@ -508,12 +337,7 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
         XX = np.einsum("cbkj,mb->mckj", s["aXX:" + name], mult)
         Xe = np.einsum("cbkj,mb->mckj", s["aXe:" + name], mult)
         cf = _solve6(XX, Xe)                     # (M, C, nb, 6)
-        edges = d.aux_edges[name]
-        labs = []
-        for k in range(N_AUX_BINS):
-            lab = f"{edges[k]:.3g}..{edges[k + 1]:.3g}" if k + 1 < edges.size else "-"
-            labs += [f"{lab} {r}" for r in REG_NAMES]
-        nbins = edges.size - 1
+        nbins = d.aux_edges[name].size - 1
         cf[:, :, nbins:, :] = np.nan
         # the trend across bins (per full span of the signal): what a linear dependence moves
         x = d.aux_centres[name]
@@ -527,7 +351,7 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
         slope = np.einsum("mcb,mcbj->mcj", wgt * dx, np.nan_to_num(y)) / np.maximum(den, 1e-12)[..., None]
         slope[(ok.sum(-1) < 3) | (den <= 0)] = np.nan
         for c in range(C):
-            p.add("aux:" + name, ch[c], labs + [f"trend over its span: {r}" for r in REG_NAMES[:4]],
+            p.add("aux:" + name, ch[c], lab["aux"][name],
                   np.concatenate([cf[:, c].reshape(M, -1), slope[:, c]], axis=1), 1e-3)
     # frequency
     sp, spn = aggc(s["spec"]), aggc(s["spec_n"])
@@ -549,10 +373,10 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
     frb = np.where(nvb > 0, nob / np.maximum(nvb, 1), np.nan)
     vb = np.where((mult > 0) & (nvb > 0), frb[None, :], np.nan)
     fb = _binom_floor(np.broadcast_to(frb, vb.shape), np.broadcast_to(nvb, vb.shape))
-    p.add("weights", "norm", [f"down-weighted {bl}" for bl in blab], vb, fb, mult)
+    p.add("weights", "norm", lab["weights_block"], vb, fb, mult)
     co, cv = agg(s["cell_out"]), agg(s["cell_valid"])
     frc = np.where(cv >= 20, co / np.maximum(cv, 1), np.nan)
-    p.add("weights", "norm", [f"down-weighted in {lab}" for lab in labels_cells], frc, _binom_floor(frc, cv))
+    p.add("weights", "norm", lab["weights_cell"], frc, _binom_floor(frc, cv))
     # raw
     rn = np.maximum(agg(s["raw_n"]), 1.0)                 # (M,)
     lc, lsn = np.einsum("jb,mb->mj", s["lat_c"], mult), np.einsum("jb,mb->mj", s["lat_s"], mult)

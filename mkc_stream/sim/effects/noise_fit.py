@@ -16,22 +16,66 @@ import numpy as np
 
 def _acov(z, inl, slices, K):
     """Sum of lag products and pair counts at lags 0..K over the given blocks (FFT per block)."""
+    return _acov_sum([_acov_block(z[sl], inl[sl], K) for sl in slices], K)
+
+
+def _acov_block(x, inl, kmax):
+    """One block's lag products and pair counts at lags 0..min(kmax, L - 1), its mean removed;
+    None for a block of fewer than 10 samples in ``inl``."""
+    x = np.where(inl, x, 0.0)
+    msk = inl.astype(float)
+    if msk.sum() < 10:
+        return None
+    x = np.where(inl, x - x.sum() / msk.sum(), 0.0)
+    L = x.size
+    nf = 1 << int(np.ceil(np.log2(2 * L)))
+    fx = np.fft.rfft(x, nf)
+    fm = np.fft.rfft(msk, nf)
+    kk = min(kmax, L - 1)
+    return np.fft.irfft(fx * np.conj(fx), nf)[:kk + 1], np.fft.irfft(fm * np.conj(fm), nf)[:kk + 1]
+
+
+def _acov_sum(blocks, K):
+    """:func:`_acov` from per-block :func:`_acov_block` results (lags up to at least K each)."""
     s = np.zeros(K + 1)
     c = np.zeros(K + 1)
-    for sl in slices:
-        x = np.where(inl[sl], z[sl], 0.0)
-        msk = inl[sl].astype(float)
-        if msk.sum() < 10:
+    for b in blocks:
+        if b is None:
             continue
-        x = np.where(inl[sl], x - x.sum() / msk.sum(), 0.0)
-        L = x.size
-        nf = 1 << int(np.ceil(np.log2(2 * L)))
-        fx = np.fft.rfft(x, nf)
-        fm = np.fft.rfft(msk, nf)
-        kk = min(K, L - 1)
-        s[:kk + 1] += np.fft.irfft(fx * np.conj(fx), nf)[:kk + 1]
-        c[:kk + 1] += np.fft.irfft(fm * np.conj(fm), nf)[:kk + 1]
+        kk = min(K, b[0].size - 1)
+        s[:kk + 1] += b[0][:kk + 1]
+        c[:kk + 1] += b[1][:kk + 1]
     return s, np.round(c)
+
+
+#: the longest lag :func:`_within_block_excess` reads
+ACOV_MAX_LAG = 200
+
+
+class _Samples:
+    """One data set's norm residual ``e`` and the samples the noise estimators read (``ok``,
+    :func:`_noise_samples`), with what they derive from it block by block: the bootstrap's
+    resamples (:meth:`mkc_stream.diagnose.attribution.Attribution._estimated_ci`) read the same
+    residuals under 40 block weightings."""
+
+    def __init__(self, e, ok):
+        self.e, self.ok = e, ok
+        self._blocks = self._offsets = None
+
+    def __iter__(self):                 # (e, ok), as the estimators unpack it
+        return iter((self.e, self.ok))
+
+    def acov_blocks(self, env, sig):
+        """:func:`_acov_block` of every block of z = e / sig, lags to ACOV_MAX_LAG."""
+        if self._blocks is None:
+            z = self.e / sig
+            self._blocks = [_acov_block(z[sl], self.ok[sl], ACOV_MAX_LAG) for sl in env.frame.block_slices()]
+        return self._blocks
+
+    def offsets(self, env):
+        if self._offsets is None:
+            self._offsets = _offsets(env, self.e, self.ok)
+        return self._offsets
 
 
 COLORED_GRID = 40           # correlation times tried, up to COLORED_SLOWEST blocks
@@ -146,20 +190,24 @@ def _block_mean_share_norm(env, mult, tau):
     sees it from many directions, so its mean over the block is small."""
     from scipy.signal import lfilter
 
-    key = ("bshare", round(float(tau), 9), tuple(np.flatnonzero(mult > 0)))
-    if key not in env.cache:
+    key = ("bshare", round(float(tau), 9))
+    if key not in env.cache:            # per block, for every block weighting
         JS = env.base.fit.v @ env.base.fit.state.S
         rho = float(np.exp(-env.frame.dt0 / tau))
-        vals = []
-        for sl, w in zip(env.frame.block_slices(), mult):
-            if w <= 0 or sl.stop - sl.start < 2:
+        per_block = []
+        for sl in env.frame.block_slices():
+            if sl.stop - sl.start < 2:
+                per_block.append(np.nan)
                 continue
             X = JS[sl]
             fwd = lfilter([1.0], [1.0, -rho], X, axis=0)
             bwd = lfilter([1.0], [1.0, -rho], X[::-1], axis=0)[::-1]
-            vals.append(np.sum(X * (fwd + bwd - X)) / X.shape[0] ** 2)
-        env.cache[key] = float(np.mean(vals)) if vals else 0.0
-    return env.cache[key]
+            per_block.append(np.sum(X * (fwd + bwd - X)) / X.shape[0] ** 2)
+        env.cache[key] = np.array(per_block)
+    per_block = env.cache[key]
+    n = min(per_block.size, len(mult))
+    vals = per_block[:n][(np.asarray(mult)[:n] > 0) & np.isfinite(per_block[:n])]
+    return float(np.mean(vals)) if vals.size else 0.0
 
 
 def _projection_acov(env, K):
@@ -187,16 +235,22 @@ def _within_block_excess(env, samples, mult, wide=None):
     autocovariance within blocks (each block's mean removed), over the replicas', lags 0..K;
     samples from :func:`_noise_samples`; the sd from the replicas of ``wide`` when given."""
     frame, base = env.frame, env.base
-    slices = [sl for sl, w in zip(frame.block_slices(), mult) if w > 0]
-    Lb = min(sl.stop - sl.start for sl in slices)
-    K = int(max(4, min(200, Lb // 3)))
+    slices = frame.block_slices()
+    sel = [b for b, (_, w) in enumerate(zip(slices, mult)) if w > 0]
+    Lb = min(slices[b].stop - slices[b].start for b in sel)
+    K = int(max(4, min(ACOV_MAX_LAG, Lb // 3)))
     sig = base.sigma[0]
     real, reps_in = samples
-    s, c = _acov(real[0] / sig, real[1], slices, K)
-    def rep_acov(pairs):
+
+    def acov(smp):
+        blocks = smp.acov_blocks(env, sig)
+        return _acov_sum([blocks[b] for b in sel], K)
+    s, c = acov(real)
+
+    def rep_acov(sets):
         out = []
-        for z, inl in pairs:
-            sr, cr = _acov(z / sig, inl, slices, K)
+        for smp in sets:
+            sr, cr = acov(smp)
             out.append(sr / np.maximum(cr, 1))
         return np.array(out)
     reps = rep_acov(reps_in)
@@ -220,13 +274,21 @@ def _noise_samples(env, ctx):
     recordings of 0.11-0.30 uT its amplitude came out 7-45% low). Bursts, many sigma out, are
     still cut; so are, in the replicas, the bursts that the baseline made of such a noise's
     peaks."""
+    arrays = (ctx.e, ctx.valid, ctx.rep_e, ctx.rep_valid)
+    kept = env.cache.setdefault("noise_samples", {})
+    hit = kept.get(id(ctx))
+    if hit is not None and all(a is b for a, b in zip(hit[0], arrays)):
+        return hit[1]
     sig = float(env.base.sigma[0])
 
     def cut(e, ok):
         scale = env.robust_sd(e[ok])
-        return e, ok & (np.abs(e) < NOISE_CUT * max(sig, scale if np.isfinite(scale) else 0.0))
+        return _Samples(e, ok & (np.abs(e) < NOISE_CUT * max(sig, scale if np.isfinite(scale) else 0.0)))
     real = cut(ctx.e[:, 0], ctx.valid[:, 0])
     reps = [cut(ctx.rep_e[i, :, 0], ctx.rep_valid[i, :, 0]) for i in range(ctx.rep_e.shape[0])]
+    if len(kept) >= 4:                  # a few evaluations' worth (each holds R + 1 residuals)
+        kept.clear()
+    kept[id(ctx)] = (arrays, (real, reps))
     return real, reps
 
 
@@ -266,11 +328,11 @@ def _variogram_excess(env, samples, mult, wide=None, kmax=8):
     """(block lags, excess, replica sd) of the variogram of the blocks' apparent hard iron;
     samples from :func:`_noise_samples`; the sd from the replicas of ``wide`` when given."""
     real, reps = samples
-    g = _variogram(_offsets(env, *real), mult, kmax)
-    gr = np.array([_variogram(_offsets(env, *r), mult, kmax) for r in reps])
+    g = _variogram(real.offsets(env), mult, kmax)
+    gr = np.array([_variogram(r.offsets(env), mult, kmax) for r in reps])
     if gr.shape[0] < 3 or not np.isfinite(gr).all() or not np.isfinite(g).all():
         return None
-    gs = gr if wide is None else np.array([_variogram(_offsets(env, *r), mult, kmax) for r in wide[1]])
+    gs = gr if wide is None else np.array([_variogram(r.offsets(env), mult, kmax) for r in wide[1]])
     if not np.isfinite(gs).all():
         return None
     return np.arange(1, kmax + 1), g - gr.mean(axis=0), np.maximum(gs.std(axis=0, ddof=1), 1e-30)
