@@ -200,6 +200,7 @@ class Engine:
                 sensor = replace(sensor, noise=tuple(np.sqrt(np.maximum(s2 - held, 0.05 * s2))))
             if len(self._norm_cache) > 24:
                 self._norm_cache.clear()
+                self._recorded_cache.clear()        # it would keep the dropped replicas alive
             self._norm_cache[key] = norm_replicas(self.frame, self.base, effects, R, self.seed, sensor)
         return self._norm_cache[key]
 
@@ -319,7 +320,7 @@ class Engine:
         clocks = self._clock(cand, R) if frame.timestamps_real else None
         recorded = self._recorded(raw, clocks, R)
         rep_bs = [block_sums.block_stats(d, rep_e[k], rep_valid[k], raw[k], None if clocks is None else clocks[k],
-                                    recorded[k]) for k in range(R)]
+                                         recorded[k]) for k in range(R)]
         return rep_bs, rep_e, rep_valid, r
 
     def _recorded(self, raw, clocks, R):
