@@ -62,9 +62,6 @@ class _Samples:
         self.e, self.ok = e, ok
         self._blocks = self._offsets = None
 
-    def __iter__(self):                 # (e, ok), as the estimators unpack it
-        return iter((self.e, self.ok))
-
     def acov_blocks(self, env, sig):
         """:func:`_acov_block` of every block of z = e / sig, lags to ACOV_MAX_LAG."""
         if self._blocks is None:
