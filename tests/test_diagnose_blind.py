@@ -178,3 +178,31 @@ def test_score_splits_the_best_wrong_line_by_source(tmp_path):
     assert S["best_wrong_deterministic_without_declared_partner_le_0.3"] == 0.75     # t0 and t1 pass
     assert [r.get("best_wrong_name") for r in rows[:4]] == ["colored_noise", "throttle_hard_iron", "hysteresis",
                                                              "temperature_offset"]
+
+
+def test_score_leaves_a_form_containing_the_truth_out_of_the_lines_outside_the_pair(tmp_path):
+    """sensor_compression's odd terms are scale_nonlinearity's columns (MeanForm.contains): on a
+    scale_nonlinearity trial it closes what the truth closes. The lines "outside the declared
+    pair" leave it out, as they leave out the truth's partner; the all-wrong line keeps it."""
+    import json
+
+    bench = _bench()
+    assert bench.CONTAINERS["scale_nonlinearity"] == {"sensor_compression"}
+    (tmp_path / "sealed").mkdir()
+    (tmp_path / "results").mkdir()
+    single = {"kind": "single", "oracle_snr": 50.0, "magnitude": {"value": 1.0}}
+    labels = {"t0": {**single, "truth": "scale_nonlinearity"}, "t1": {**single, "truth": "sensor_compression"}}
+    results = {
+        "t0": _result("explained", ["scale_nonlinearity"], {"scale_nonlinearity": 1.0, "sensor_compression": 0.98,
+                                                            "higher_order_soft_iron": 0.1}),
+        # the other way round the special case is an effect of its own: it counts
+        "t1": _result("explained", ["sensor_compression"], {"sensor_compression": 1.0, "scale_nonlinearity": 0.6}),
+    }
+    (tmp_path / "sealed" / "labels.json").write_text(json.dumps(labels))
+    for name, r in results.items():
+        (tmp_path / "results" / f"{name}.json").write_text(json.dumps(r))
+    S, rows = bench.step_score(tmp_path)
+    assert rows[0]["best_wrong_source"] == "contains_truth" and rows[0]["best_wrong_unpaired_det"] == 0.1
+    assert rows[1]["best_wrong_unpaired_det"] == 0.6
+    assert S["best_wrong_deterministic_le_0.3"] == 0.0
+    assert S["best_wrong_deterministic_without_declared_partner_le_0.3"] == 0.5

@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mkc_stream.diagnose.forms import FORMS  # noqa: E402
 from mkc_stream.sim import SensorModel, generate as make_trajectory, simulate  # noqa: E402
 from mkc_stream.sim.effects.base import first_order_lag  # noqa: E402
 from mkc_stream.sim.effects.noise import gauss_markov  # noqa: E402
@@ -515,11 +516,28 @@ for _pair in PAIRS:
     PARTNERS.setdefault(_b, set()).add(_a)
 
 
+#: each effect's containers: the forms that hold it as a special case (``MeanForm.contains``, the
+#: diagnoser's own declaration: sensor_compression's odd cubic terms are scale_nonlinearity's
+#: columns), which close whatever it closes; the lines "outside the declared pair" leave them out
+CONTAINERS = {}
+for _name, _form in FORMS.items():
+    for _inner in getattr(_form, "contains", ()):
+        CONTAINERS.setdefault(_inner, set()).add(_name)
+
+
+def declared(truth):
+    """The wrong effects the truth's lines "outside the declared pair" leave out: its partners in
+    PAIRS and the forms that contain it."""
+    return PARTNERS.get(truth, set()) | CONTAINERS.get(truth, set())
+
+
 def wrong_source(truth, name):
     """Why a wrong effect can close the gap: a catch-all noise model (widens its replicas), the
-    truth's declared confusable partner (PAIRS), or another effect."""
+    truth's declared confusable partner (PAIRS), a form containing the truth, or another effect."""
     if name in CATCH_ALL:
         return "catch_all"
+    if name in CONTAINERS.get(truth, set()):
+        return "contains_truth"
     return "declared_partner" if name in PARTNERS.get(truth, set()) else "other"
 
 
@@ -559,7 +577,7 @@ def step_score(out):
             top = max(wrong, key=lambda e: e["shrink"])
             row["best_wrong_name"] = top["name"]
             row["best_wrong_source"] = wrong_source(truth, top["name"])
-        unpaired = [e for e in wrong if e["name"] not in PARTNERS.get(truth, set())]
+        unpaired = [e for e in wrong if e["name"] not in declared(truth)]
         row["best_wrong_unpaired"] = max([e["shrink"] for e in unpaired], default=None)
         row["best_wrong_unpaired_det"] = max([e["shrink"] for e in unpaired if e["name"] not in CATCH_ALL],
                                              default=None)

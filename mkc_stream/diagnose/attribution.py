@@ -129,7 +129,7 @@ class Attribution:
                 continue
             ev = self.eng.evaluate(cand, R=R)
             out[name] = (cand, ev, gap.shrink(g_ref, ev.G))
-            why = implausible(name, self.term_magnitude(ev, name))
+            why = implausible(name, self.term_magnitude(ev, name)) or self.eng.limit_reason(cand, name)
             if why:
                 self.bad[name] = why
             else:

@@ -26,6 +26,12 @@ REFINE_REPLICAS = 16
 #: refinements: the second one weights by replicas of an estimate already weighted by its own
 #: spread (one pass left a 1.4 s component where the three true ones were 0.5, 5 and 30 s)
 REFINE_PASSES = 2
+#: chi-square by which a form's limit (another effect) must beat its best design for the effect not
+#: to be claimed: a likelihood ratio of e^12.5 were the residuals white; their autocorrelation
+#: inflates chi-square differences, hence the wide margin. On the independent simulator's blind
+#: trials a 5-14 ms latency beats the best hysteresis loop width by 46-240, and a play-operator
+#: loop prefers a loop width by 251-3,865; with no effect the limit is 2-7 ahead (decision 0025)
+LIMIT_MARGIN = 25.0
 
 
 @dataclass
@@ -147,6 +153,7 @@ class Engine:
         self._ref_cache = {}        # the catch-alls' reference replicas (see evaluate)
         self._scored = {}           # id(cand) -> (cand, R, Evaluation): what _refined already scored
         self._design_cache = {}
+        self._limit_cache = {}      # (others, name) -> chi-square excess of the best design over its limit
         self.train_mult = frame.train_blocks.astype(float)
         self.all_mult = np.ones(frame.n_blocks)
         self.labels = None
@@ -296,9 +303,28 @@ class Engine:
                                  iters=2)
                 rss = [quick_rss(self.frame, base, t.with_design(dz, G)) for dz, G in t.options]
                 self._design_cache[key] = int(np.argmin(rss))
+                limit = FORMS[t.name].limit
+                if limit is not None:
+                    dz, _ = limit(self.env)
+                    lim = quick_rss(self.frame, base, t.with_design(dz, FORMS[t.name].G(self.env, dz)))
+                    self._limit_cache[key[:2]] = float(min(rss) - lim)
             dz, G = t.options[self._design_cache[key]]
             terms[i] = t.with_design(dz, G)
         return terms
+
+    def limit_reason(self, cand, name):
+        """Why effect ``name`` of the evaluated candidate is not claimed: its form's limit
+        (:attr:`MeanForm.limit`, another effect) fits the whole recording better than every one
+        of its designs by at least LIMIT_MARGIN in chi-square (the designs' and the limit's
+        columns have the same count, so this compares likelihoods); None otherwise."""
+        form = FORMS[name]
+        if not isinstance(form, MeanForm) or form.limit is None:
+            return None
+        others = [o for o in cand.terms if o.name != name]
+        excess = self._limit_cache.get((tuple((o.name, repr(o.design)) for o in others), name))
+        if excess is None or excess < LIMIT_MARGIN:
+            return None
+        return form.limit(self.env)[1].format(excess=excess)
 
     def _replica_stats(self, cand, fits, folds, e, valid, bursts, R):
         frame, base, d = self.frame, self.base, self.design

@@ -39,6 +39,9 @@ class MeanForm:
     magnitude: Callable        # (env, design, theta) -> {"value": v, "unit": u, ...}
     alias_of: str | None = None    # another effect with the same observable (reported as ambiguous)
     contains: tuple = ()           # effects this form holds as a special case (left out with them)
+    # (env) -> (design, text): the setting at which the form turns into another effect; when the
+    # data prefer it to every design by a wide margin the effect is not claimed (Engine.limit_excess)
+    limit: Callable | None = None
 
     @property
     def kind(self) -> str:

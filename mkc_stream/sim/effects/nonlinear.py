@@ -155,9 +155,18 @@ def _hysteresis_designs(env):
 
 def _hysteresis_G(env, d):
     md = env.mdot()
-    eps = d["k"] * np.maximum(np.median(np.abs(md), axis=0), 1e-12)
-    x = -np.tanh(md / eps)
+    scale = np.maximum(np.median(np.abs(md), axis=0), 1e-12)
+    # k = inf: tanh's linear limit, a lag in proportion to the rate (_hysteresis_limit)
+    x = -md / scale if np.isinf(d["k"]) else -np.tanh(md / (d["k"] * scale))
     return lambda frame, m, st: diag(x)
+
+
+def _hysteresis_limit(env):
+    """A loop's width does not depend on how fast the field moves (a play or Preisach loop; the
+    tanh at k <= 1); at large k the tanh is linear and the "loop" is a lag in proportion to the
+    rate, dm_j = -tau_j dm_j/dt: a latency or an output filter, which other effects model."""
+    return {"k": np.inf}, ("the lag grows in proportion to the field's rate (chi-square {excess:.0f} lower "
+                           "than with the best loop width): a latency or output filter, not a hysteresis loop")
 
 
 def _hysteresis_magnitude(env, d, th):
@@ -249,7 +258,7 @@ HYSTERESIS = Effect(
             Param("rate", "uT/s", 0.5, 50.0, 5.0, "field rate at which the loop is fully open")),
     needs=(), forward=_hysteresis_forward,
     testable=lambda ev: coverage_ok(ev, 0.3),
-    form=MeanForm(_hysteresis_designs, _hysteresis_G, 3, _hysteresis_magnitude),
+    form=MeanForm(_hysteresis_designs, _hysteresis_G, 3, _hysteresis_magnitude, limit=_hysteresis_limit),
     doc="-width tanh(dm/dt / rate) per axis")
 
 EFFECTS = (SCALE_NONLINEARITY, SENSOR_COMPRESSION, SATURATION, HIGHER_ORDER_SOFT_IRON, HYSTERESIS)
