@@ -122,18 +122,21 @@ static void emit(mkc_mag_t *g)
         g->listener(g->listener_user, g);
 }
 
-static void fail_event(mkc_mag_t *g, int64_t seen, int64_t esteps)
+/* The checkpoint's event: the calibration cal, or none (NULL: a checkpoint without one). */
+static void fill_event(mkc_mag_t *g, int64_t seen, int64_t esteps, const mkc_mag_calibration *cal)
 {
     mkc_mag_event *ev = &g->last_event;
     int j;
     ev->samples_seen = seen;
     ev->esteps = esteps;
-    ev->accepted = 0;
-    ev->has_calibration = 0;
+    ev->accepted = cal ? cal->accepted : 0;
+    ev->has_calibration = cal != NULL;
     ev->reason = g->last_reason;
     for (j = 0; j < 3; j++)
-        ev->hard_iron[j] = RC(0.0);
-    ev->field = ev->coverage = ev->outlier_fraction = RC(0.0);
+        ev->hard_iron[j] = cal ? cal->hard_iron[j] : RC(0.0);
+    ev->field = cal ? cal->field : RC(0.0);
+    ev->coverage = cal ? cal->quality[MKC_Q_COVERAGE] : RC(0.0);
+    ev->outlier_fraction = cal ? cal->quality[MKC_Q_OUTLIER_FRACTION] : RC(0.0);
 }
 
 /* _try_final_normalisation: 1 when the sphere fit's coverage allows the final normalisation (done,
@@ -146,18 +149,12 @@ static int try_final_normalisation(mkc_mag_t *g, int count, int64_t seen, int64_
     spread = ok ? mkc__sphere_spread(g, count, b, F) : RC(HUGE_VAL);
     if (ok && spread <= RC(MKC_MAX_SPHERE_SPREAD))
         cov = mkc__sphere_coverage_raw(g, count, b);
-    if (ok && spread > RC(MKC_MAX_SPHERE_SPREAD)) {
-        g->last_reason.code = MKC_REASON_MOTION_WAIT;
+    if (!ok || spread > RC(MKC_MAX_SPHERE_SPREAD) || cov < RC(MKC_MIN_SPHERE_COVERAGE)) {
+        int motion = ok && spread > RC(MKC_MAX_SPHERE_SPREAD);
+        g->last_reason.code = motion ? MKC_REASON_MOTION_WAIT : MKC_REASON_COVERAGE_WAIT;
         g->last_reason.fails = 0;
-        g->last_reason.v[0] = MKC_REASON_VALUE(spread);
-        fail_event(g, seen, esteps);
-        return 0;
-    }
-    if (!ok || cov < RC(MKC_MIN_SPHERE_COVERAGE)) {
-        g->last_reason.code = MKC_REASON_COVERAGE_WAIT;
-        g->last_reason.fails = 0;
-        g->last_reason.v[0] = MKC_REASON_VALUE(cov);
-        fail_event(g, seen, esteps);
+        g->last_reason.v[0] = MKC_REASON_VALUE(motion ? spread : cov);
+        fill_event(g, seen, esteps, NULL);
         return 0;
     }
     set_normalisation(g, b, F, NULL, 1);
@@ -275,20 +272,35 @@ static void better_cold_start(mkc_mag_t *g, const mkc_real *theta0)
     }
 }
 
+/* The calibration (b, S, F) of a geometry into cal, and its quality figures on the window. */
+static void calibration_of(mkc_mag_t *g, int count, const mkc_creal *bd, const mkc_creal Sd[3][3], mkc_creal Fd,
+                           mkc_mag_calibration *cal)
+{
+    int j, k;
+    for (j = 0; j < 3; j++) {
+        cal->hard_iron[j] = (mkc_real)bd[j];
+        for (k = 0; k < 3; k++)
+            cal->soft_iron[j][k] = (mkc_real)Sd[j][k];
+    }
+    cal->field = (mkc_real)Fd;
+    mkc__quality_figures(g, count, cal->hard_iron, (const mkc_real(*)[3])cal->soft_iron, cal->field,
+                         mkc__weighted_condition(g, count), cal->quality);
+}
+
 /* _cold_start_disagreement: batch MKC-EM from scratch on the window, in the estimate's own state.
  * Returns the disagreement max(|b_cold - b|, |F_cold - F|) (HUGE_VAL when the cold start gives no
  * ellipsoid, or is not run because the warm weights could not be recomputed: keep_warm_estimate;
  * the reference runs it there). If it agrees, the warm estimate is restored (nothing changes);
- * otherwise the stream continues from the cold start and *have_cold says whether cold_* hold its
- * calibration. */
+ * otherwise the stream continues from the cold start and *have_cold says whether cold holds its
+ * calibration (b, S, F and quality). */
 static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real *b, mkc_real F, int *have_cold,
-                                         mkc_real *bc, mkc_real Sc[3][3], mkc_real *Fc, mkc_real *qc)
+                                         mkc_mag_calibration *cold)
 {
     mkc__geometry geom;
     mkc_mag_reason unused;
     mkc_creal bd[3], Sd[3][3], Fd, e0, e1, e2, dis, dF, sc[3];
     mkc_real sb[3], sF = RC(0.0), theta0[9];
-    int j, k, have_sphere = 0;
+    int j, have_sphere = 0;
     *have_cold = 0;
     /* from the window's own trimmed sphere (a high-breakdown start, independent of the warm trial)
      * and from WLS, the one the window's likelihood prefers kept (better_cold_start); only WLS when
@@ -321,13 +333,7 @@ static mkc_creal cold_start_disagreement(mkc_mag_t *g, int count, const mkc_real
         return dis;
     }
     keep_cold_estimate(g);
-    for (j = 0; j < 3; j++) {
-        bc[j] = (mkc_real)bd[j];
-        for (k = 0; k < 3; k++)
-            Sc[j][k] = (mkc_real)Sd[j][k];
-    }
-    *Fc = (mkc_real)Fd;
-    mkc__quality_figures(g, count, bc, (const mkc_real(*)[3])Sc, *Fc, mkc__weighted_condition(g, count), qc);
+    calibration_of(g, count, bd, (const mkc_creal(*)[3])Sd, Fd, cold);
     *have_cold = 1;
     return dis;
 }
@@ -436,12 +442,12 @@ static void offer(mkc_mag_t *g, int count, const mkc_mag_calibration *cal, int64
 static void checkpoint(mkc_mag_t *g)
 {
     int64_t seen = g->core.counters.seen, esteps = g->core.counters.esteps;
-    int count = (int)g->core.counters.count, why, j, k;
+    int count = (int)g->core.counters.count, why, j;
     mkc__geometry geom;
     mkc_mag_reason reason;
     mkc_creal bd[3], Sd[3][3], Fd;
-    mkc_real b[3], S[3][3], F, q[MKC_QUALITY], sigma, d;
-    mkc_mag_calibration *cal;
+    mkc_real sigma, d;
+    mkc_mag_calibration *cal = &g->trial;
     uint32_t fails;
     if (g->provisional) {
         /* The first centre came from a few samples, possibly all on one patch of the surface: the
@@ -463,7 +469,7 @@ static void checkpoint(mkc_mag_t *g)
     if (why != MKC_REASON_NONE) {
         reason.code = why;
         g->last_reason = reason;
-        fail_event(g, seen, esteps);
+        fill_event(g, seen, esteps, NULL);
         g->failed += 1;
         if (g->failed >= MKC_MAX_FAILED_CHECKPOINTS) {
             /* watchdog: a bad normalisation (features centred on the surface) cannot heal itself;
@@ -477,35 +483,23 @@ static void checkpoint(mkc_mag_t *g)
     mkc__raw_geometry(&geom, g->c0, g->s0);
     mkc__calibration_from_geometry(&geom, bd, Sd, &Fd);
     g->failed = 0;
-    for (j = 0; j < 3; j++) {
-        b[j] = (mkc_real)bd[j];
-        for (k = 0; k < 3; k++)
-            S[j][k] = (mkc_real)Sd[j][k];
-    }
-    F = (mkc_real)Fd;
-    mkc__quality_figures(g, count, b, (const mkc_real(*)[3])S, F, mkc__weighted_condition(g, count), q);
-    fails = mkc__acceptance_check(g, q, F, -CR(1.0), &reason);
-    if (!fails && needs_confirmation(g, b, F)) {
+    /* the trial is built in place: nothing reads g->trial until the checkpoint's end */
+    calibration_of(g, count, bd, (const mkc_creal(*)[3])Sd, Fd, cal);
+    fails = mkc__acceptance_check(g, cal->quality, cal->field, -CR(1.0), &reason);
+    if (!fails && needs_confirmation(g, cal->hard_iron, cal->field)) {
         /* A warm-started estimate can lock onto a wrong mode that it reinforces (the samples it
          * down-weights are the ones that would correct it); a cold start cannot inherit that. */
-        mkc_real bc[3], Sc[3][3], Fc = RC(0.0), qc[MKC_QUALITY];
+        mkc_mag_calibration cold;
         int have_cold;
-        mkc_creal dis = cold_start_disagreement(g, count, b, F, &have_cold, bc, Sc, &Fc, qc);
-        fails = mkc__acceptance_check(g, q, F, dis, &reason);
+        mkc_creal dis = cold_start_disagreement(g, count, cal->hard_iron, cal->field, &have_cold, &cold);
+        fails = mkc__acceptance_check(g, cal->quality, cal->field, dis, &reason);
         if (!fails) {
             for (j = 0; j < 3; j++)
-                g->confirmed_b[j] = b[j];
-            g->confirmed_F = F;
+                g->confirmed_b[j] = cal->hard_iron[j];
+            g->confirmed_F = cal->field;
             g->has_confirmed = 1;
         } else if (have_cold) {          /* report (and continue from) the cold start */
-            for (j = 0; j < 3; j++) {
-                b[j] = bc[j];
-                for (k = 0; k < 3; k++)
-                    S[j][k] = Sc[j][k];
-            }
-            F = Fc;
-            for (j = 0; j < MKC_QUALITY; j++)
-                q[j] = qc[j];
+            *cal = cold;                 /* b, S, F, quality; the rest is set below */
             sigma = g->core.sigma[0];
             d = g->core.d[0];
         }
@@ -520,17 +514,8 @@ static void checkpoint(mkc_mag_t *g)
         g->misfit = 0;
         g->provisional = 1;
     }
-    cal = &g->trial;
-    for (j = 0; j < 3; j++) {
-        cal->hard_iron[j] = b[j];
-        for (k = 0; k < 3; k++)
-            cal->soft_iron[j][k] = S[j][k];
-    }
-    cal->field = F;
     cal->sigma = sigma;
     cal->d = d;
-    for (j = 0; j < MKC_QUALITY; j++)
-        cal->quality[j] = q[j];
     cal->valid = 1;
     cal->accepted = fails == 0;
     cal->reason = reason;
@@ -540,18 +525,9 @@ static void checkpoint(mkc_mag_t *g)
     if (!fails)
         offer(g, count, cal, seen);
     g->last_reason = reason;
-    g->last_event.samples_seen = seen;
-    g->last_event.esteps = esteps;
-    g->last_event.accepted = fails == 0;
-    g->last_event.has_calibration = 1;
-    g->last_event.reason = reason;
-    for (j = 0; j < 3; j++)
-        g->last_event.hard_iron[j] = b[j];
-    g->last_event.field = F;
-    g->last_event.coverage = q[MKC_Q_COVERAGE];
-    g->last_event.outlier_fraction = q[MKC_Q_OUTLIER_FRACTION];
+    fill_event(g, seen, esteps, cal);
     if (!fails)              /* only a trustworthy trial may move the feature normalisation */
-        maybe_renormalise(g, &geom, b, F);
+        maybe_renormalise(g, &geom, cal->hard_iron, cal->field);
     emit(g);
 }
 
