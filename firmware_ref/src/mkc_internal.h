@@ -127,21 +127,7 @@ float mkc__max_f(float a, float b);
  *   1 - h          = sum_{k>=1} (-1)^(k+1) q^k / k!        (through q^8)
  *   1 - (1 + q) h  = sum_{k>=2} (-1)^k (k - 1) q^k / k!    (through q^9)
  * (truncation < 3e-8 relative) and no libm call; above it one expf. */
-static inline void mkc__omh_terms_f(float q, float *omh, float *omh_qh, float *h)
-{
-    if (q < 0.5f) {
-        float o = q * (1.0f - q * (0.5f - q * (1.0f / 6.0f - q * (1.0f / 24.0f - q * (1.0f / 120.0f
-                  - q * (1.0f / 720.0f - q * (1.0f / 5040.0f - q * (1.0f / 40320.0f))))))));
-        *omh = o;
-        *omh_qh = q * q * (0.5f - q * (1.0f / 3.0f - q * (0.125f - q * (1.0f / 30.0f - q * (1.0f / 144.0f
-                  - q * (1.0f / 840.0f - q * (1.0f / 5760.0f - q * (1.0f / 45360.0f))))))));
-        *h = 1.0f - o;
-        return;
-    }
-    *h = expf(-q);
-    *omh = 1.0f - *h;
-    *omh_qh = *omh - q * *h;
-}
+void mkc__omh_terms_f(float q, float *omh, float *omh_qh, float *h);   /* normaliser.c: one copy */
 
 #define MKC_FLT_EPS 1.1920929e-7f     /* FLT_EPSILON */
 #define MKC_GRAD_NOISE_ULPS 16.0f     /* the float E-step gradient's rounding noise, in ulps of its terms */

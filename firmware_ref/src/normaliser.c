@@ -43,6 +43,24 @@ static void omh_h(mkc_ereal q, mkc_ereal *omh, mkc_ereal *h)
     *h = MKC_EXP_E(-q);
     *omh = EC(1.0) - *h;
 }
+#else
+/* mkc_internal.h: (1 - h, 1 - (1 + q) h, h) for the single-precision E-step (estep.c, and the
+ * integrand below); out of line, one copy for both */
+void mkc__omh_terms_f(float q, float *omh, float *omh_qh, float *h)
+{
+    if (q < 0.5f) {
+        float o = q * (1.0f - q * (0.5f - q * (1.0f / 6.0f - q * (1.0f / 24.0f - q * (1.0f / 120.0f
+                  - q * (1.0f / 720.0f - q * (1.0f / 5040.0f - q * (1.0f / 40320.0f))))))));
+        *omh = o;
+        *omh_qh = q * q * (0.5f - q * (1.0f / 3.0f - q * (0.125f - q * (1.0f / 30.0f - q * (1.0f / 144.0f
+                  - q * (1.0f / 840.0f - q * (1.0f / 5760.0f - q * (1.0f / 45360.0f))))))));
+        *h = 1.0f - o;
+        return;
+    }
+    *h = expf(-q);
+    *omh = 1.0f - *h;
+    *omh_qh = *omh - q * *h;
+}
 #endif
 
 /* Head (|u| < 3 max(1, sigma)): width ~1 (big sigma) or ~sigma (small sigma) bump. Tail: g ~
