@@ -17,12 +17,9 @@ typedef struct mkc_ff {
     float hi, lo;
 } mkc_ff;
 
-/* a handful of flops each, in inner loops: inlined also at -Os (which would otherwise call them) */
-#if defined(__GNUC__)
-#define MKC_FF_INLINE static inline __attribute__((always_inline))
-#else
+/* a handful of flops each: -Os calls those used in several places (the checkpoint code, where
+ * flash counts more than a call) */
 #define MKC_FF_INLINE static inline
-#endif
 
 /* s + e = a + b exactly (two-sum, any order of magnitude) */
 MKC_FF_INLINE float mkc__two_sum_f(float a, float b, float *e)
