@@ -58,6 +58,21 @@ static mkc_real target(const mkc_core_t *c, int s, int i)
     return ((const mkc_stream_t *)(const void *)c)->Y[s][i];
 }
 
+/* r = y - x^T theta, subtracting in ascending j (the reference's residual). */
+static mkc_real residual_of(const mkc_real *x, mkc_real y, const mkc_real *theta, int n)
+{
+    int j;
+    for (j = 0; j < n; j++)
+        y -= x[j] * theta[j];
+    return y;
+}
+
+/* The residual of row (s, i) at theta (buf: room for a recomputed magnetometer row). */
+static mkc_real residual_at(const mkc_core_t *c, int s, int i, const mkc_real *theta, mkc_real *buf)
+{
+    return residual_of(row_at(c, s, i, buf), target(c, s, i), theta, c->cfg.n);
+}
+
 /* Write the new sample into slot s (before anything reads that slot's row). */
 static void store_row(mkc_core_t *c, int s, const mkc_real *xk, const mkc_real *yk)
 {
@@ -410,10 +425,7 @@ int mkc__rebuild(mkc_core_t *c)
             for (i = 0; i < m; i++) {
                 const mkc_real *x = row_at(c, s, i, buf[k]);
                 mkc_real y = target(c, s, i);
-                mkc_real r, w, cc;
-                r = y;
-                for (j = 0; j < n; j++)
-                    r -= x[j] * c->theta[j];
+                mkc_real r = residual_of(x, y, c->theta, n), w, cc;
                 w = gauss_weight(r * r * weight_exponent_scale(c->sigma[i], c->d[i]));  /* exp(-r^2/(2 d^2 s^2)) */
                 wsum += (mkc_acc)w;
                 cc = w * (RC(1.0) / (c->d[i] * c->d[i]));
@@ -471,11 +483,7 @@ int mkc__rebuild(mkc_core_t *c)
 static mkc_real weight_at(const mkc_core_t *c, int s, int i, const mkc_real *theta, mkc_real sigma, mkc_real d)
 {
     mkc_real buf[MKC_N];
-    const mkc_real *x = row_at(c, s, i, buf);
-    mkc_real r = target(c, s, i), w;
-    int j;
-    for (j = 0; j < c->cfg.n; j++)
-        r -= x[j] * theta[j];
+    mkc_real r = residual_at(c, s, i, theta, buf), w;
     w = gauss_weight(r * r * weight_exponent_scale(sigma, d));  /* exp(-r^2/(2 d^2 s^2)) */
     return w * (RC(1.0) / (d * d));
 }
@@ -522,10 +530,7 @@ void mkc__estep_window(mkc_core_t *c)
         mkc_ereal s_new, d_new, F;
         int its, st;
         for (s = 0; s < count; s++) {
-            const mkc_real *x = row_at(c, s, i, buf);
-            mkc_real y = target(c, s, i), r = y;
-            for (j = 0; j < n; j++)
-                r -= x[j] * th[j];
+            mkc_real y = target(c, s, i), r = residual_at(c, s, i, th, buf);
             c->ebuf[s] = r * r;
             amax = mkc__max_r(amax, MKC_FABS_R(r));
             ymax = mkc__max_r(ymax, MKC_FABS_R(y));
@@ -567,19 +572,16 @@ void mkc__estep_window(mkc_core_t *c)
  * them (their squares in ebuf). HUGE_VAL when sigma, d or a is not positive. */
 mkc_ereal mkc__window_objective(mkc_core_t *c)
 {
-    int n = c->cfg.n, m = c->cfg.m;
+    int m = c->cfg.m;
     int count = (int)c->counters.count;
-    int s, i, j;
+    int s, i;
     mkc_ereal total = EC(0.0), g0, g1;
     mkc_real buf[MKC_N];
     for (i = 0; i < m; i++) {
         if (!(c->sigma[i] > RC(0.0) && c->d[i] > RC(0.0) && c->a[i] > RC(0.0)) || count < 1)
             return EC(HUGE_VAL);
         for (s = 0; s < count; s++) {
-            const mkc_real *x = row_at(c, s, i, buf);
-            mkc_real r = target(c, s, i);
-            for (j = 0; j < n; j++)
-                r -= x[j] * c->theta[j];
+            mkc_real r = residual_at(c, s, i, c->theta, buf);
             c->ebuf[s] = r * r;
         }
         total += mkc__estep_objective(MKC_LOG_E((mkc_ereal)c->sigma[i]), MKC_LOG_E((mkc_ereal)c->d[i]), c->ebuf,
@@ -593,7 +595,7 @@ static int initialise_window(mkc_core_t *c)
 {
     int n = c->cfg.n, m = c->cfg.m;
     int count = (int)c->counters.count;
-    int p, q, s, i, j, st;
+    int p, q, s, i, st;
     mkc_acc cond;
     mkc_real buf[MKC_N];
 #if MKC_ALL_FLOAT
@@ -632,10 +634,7 @@ static int initialise_window(mkc_core_t *c)
         if (!(c->d[i] > RC(0.0))) {
             mkc_acc acc = AC(0.0);
             for (s = 0; s < count; s++) {
-                const mkc_real *x = row_at(c, s, i, buf);
-                mkc_real r = target(c, s, i);
-                for (j = 0; j < n; j++)
-                    r -= x[j] * c->theta[j];
+                mkc_real r = residual_at(c, s, i, c->theta, buf);
                 acc += (mkc_acc)r * (mkc_acc)r;
             }
             c->d[i] = (mkc_real)mkc__max_a(MKC_SQRT_A(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
@@ -679,10 +678,7 @@ int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
         c->Hes[i][1] = EC(0.0);
         c->Hes[i][2] = EC(0.0);
         for (s = 0; s < count; s++) {
-            const mkc_real *x = row_at(c, s, i, buf);
-            mkc_real r = target(c, s, i);
-            for (j = 0; j < n; j++)
-                r -= x[j] * c->theta[j];
+            mkc_real r = residual_at(c, s, i, c->theta, buf);
             c->ebuf[s] = r;
             acc += (mkc_acc)r * (mkc_acc)r;
         }
