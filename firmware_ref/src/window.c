@@ -276,6 +276,19 @@ static void row_update2_residual(mkc_acc A[MKC_N][MKC_N], mkc_acc *b, const mkc_
     }
 }
 
+/* A, b to zero before their sums, and the all-float build's carries lo[0 .. nlo - 1] (none: 0). */
+static void clear_sums(mkc_core_t *c, float *lo, int nlo)
+{
+    int p, q, n = c->cfg.n;
+    for (p = 0; p < n; p++) {
+        c->b[p] = AC(0.0);
+        for (q = 0; q < n; q++)
+            c->A[p][q] = AC(0.0);
+    }
+    for (p = 0; p < nlo; p++)
+        lo[p] = 0.0f;
+}
+
 /* Mirror A's lower triangle and solve A theta = b; theta is kept if A is singular. L, D then hold
  * the factor the tracking steps use (age 0), or are marked invalid. */
 static int solve_window(mkc_core_t *c, mkc_acc *cond)
@@ -384,12 +397,12 @@ int mkc__rebuild(mkc_core_t *c)
 {
     int n = c->cfg.n, m = c->cfg.m;
     int count = (int)c->counters.count;
-    int status = MKC_NOT_CONVERGED, rnd, p, q, s, i, j, st, k;
+    int status = MKC_NOT_CONVERGED, rnd, s, i, j, st, k;
 #if MKC_ALL_FLOAT
     /* each row is added with compensation as it comes (row_update_compensated); buf holds the
      * recomputed features of a magnetometer window */
     mkc_real buf[1][MKC_N];
-    float Alo[MKC_N_LOWER], blo[MKC_N];
+    float Alo[MKC_N_LOWER + MKC_N], *blo = Alo + MKC_N_LOWER;     /* the carries of A, then of b */
 #else
     /* up to four pending rows (c != 0) are added to A, b in one pass (row_update4); buf holds the
      * recomputed features of a magnetometer window, one buffer per pending row */
@@ -404,20 +417,14 @@ int mkc__rebuild(mkc_core_t *c)
 #if defined(__GNUC__)
         __builtin_memcpy(c->tprev, c->theta, (size_t)n * sizeof c->theta[0]);
 #else
-        for (p = 0; p < n; p++)
-            c->tprev[p] = c->theta[p];
+        for (j = 0; j < n; j++)
+            c->tprev[j] = c->theta[j];
 #endif
-        for (p = 0; p < n; p++) {
-            c->b[p] = AC(0.0);
-            for (q = 0; q < n; q++)
-                c->A[p][q] = AC(0.0);
-        }
         k = 0;
 #if MKC_ALL_FLOAT
-        for (p = 0; p < MKC_N_LOWER; p++)
-            Alo[p] = 0.0f;
-        for (p = 0; p < n; p++)
-            blo[p] = 0.0f;
+        clear_sums(c, Alo, MKC_N_LOWER + MKC_N);
+#else
+        clear_sums(c, NULL, 0);
 #endif
         if (c->defer_weights)
             c->defer_weights = 2;
@@ -595,21 +602,15 @@ static int initialise_window(mkc_core_t *c)
 {
     int n = c->cfg.n, m = c->cfg.m;
     int count = (int)c->counters.count;
-    int p, q, s, i, st;
+    int s, i, st;
     mkc_acc cond;
     mkc_real buf[MKC_N];
 #if MKC_ALL_FLOAT
-    float Alo[MKC_N_LOWER], blo[MKC_N];
-    for (p = 0; p < MKC_N_LOWER; p++)
-        Alo[p] = 0.0f;
-    for (p = 0; p < n; p++)
-        blo[p] = 0.0f;
+    float Alo[MKC_N_LOWER + MKC_N], *blo = Alo + MKC_N_LOWER;     /* the carries of A, then of b */
+    clear_sums(c, Alo, MKC_N_LOWER + MKC_N);
+#else
+    clear_sums(c, NULL, 0);
 #endif
-    for (p = 0; p < n; p++) {
-        c->b[p] = AC(0.0);
-        for (q = 0; q < n; q++)
-            c->A[p][q] = AC(0.0);
-    }
     for (s = 0; s < count; s++) {
         for (i = 0; i < m; i++) {
             mkc_real wd = c->d[i] > RC(0.0) ? RC(1.0) * (RC(1.0) / (c->d[i] * c->d[i])) : RC(1.0);
