@@ -169,16 +169,17 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
      * the optimum jumps, and max_iter iterations would leave a stale kernel for several checkpoints. */
     while (it < max_iter + MKC_FAR_EXTRA_ITER) {
         int free0, free1, accepted = 0, ls;
-        mkc_ereal pg0, pg1, p0, p1, pmax, alpha, alpha0, pred, s0, s1, y0, y1, sy;
+        mkc_ereal pg0, pg1, pgmax, p0, p1, pmax, alpha, alpha0, pred, s0, s1, y0, y1, sy;
         free0 = !((z0 <= lo0 && g0 > EC(0.0)) || (z0 >= hi0 && g0 < EC(0.0)));
         free1 = !((z1 <= lo1 && g1 > EC(0.0)) || (z1 >= hi1 && g1 < EC(0.0)));
         pg0 = free0 ? g0 : EC(0.0);
         pg1 = free1 ? g1 : EC(0.0);
-        if (mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1)) <= gtol) {
+        pgmax = mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1));    /* the projected gradient's size */
+        if (pgmax <= gtol) {
             status = MKC_OK;
             break;
         }
-        if (it >= max_iter && mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1)) <= EC(MKC_FAR_GTOL))
+        if (it >= max_iter && pgmax <= EC(MKC_FAR_GTOL))
             break;            /* the cap: near enough for a generalised EM step */
         it += 1;
         if (free0 && free1) {
@@ -215,8 +216,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
             /* Flat regions (sigma and d large, Section III-D): the full step was accepted and F fell
              * like its linear model, so the curvature is overestimated: keep doubling while F
              * falls, up to the e^2 cap. */
-            mkc_ereal pnorm = mkc__max_e(MKC_FABS_E(p0), MKC_FABS_E(p1));
-            while (EC(2.0) * alpha * pnorm <= EC(2.0)) {
+            while (EC(2.0) * alpha * pmax <= EC(2.0)) {   /* pmax: p0, p1 as above */
                 mkc_ereal t0 = CLAMP(z0 + EC(2.0) * alpha * p0, lo0, hi0);
                 mkc_ereal t1 = CLAMP(z1 + EC(2.0) * alpha * p1, lo1, hi1);
                 mkc_ereal gt0, gt1;
@@ -236,7 +236,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
         }
         if (!accepted) {
             /* no decrease possible at float resolution: at the minimum (or on a flat ridge) */
-            status = mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1)) <= EC(1e3) * gtol ? MKC_OK : MKC_NOT_CONVERGED;
+            status = pgmax <= EC(1e3) * gtol ? MKC_OK : MKC_NOT_CONVERGED;
             break;
         }
         s0 = n0 - z0;
