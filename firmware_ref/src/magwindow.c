@@ -158,19 +158,12 @@ mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, cons
     return MKC_SQRT_R(m0 * m0 + m1 * m1 + m2 * m2);
 }
 
+/* |S (raw_k - b)| for k < count into out: mkc__calibrated_norm's operations (one copy of them) */
 void mkc__calibrated_norms(const mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real *out)
 {
-    const mkc_real b0 = b[0], b1 = b[1], b2 = b[2];
-    const mkc_real s00 = S[0][0], s01 = S[0][1], s02 = S[0][2], s10 = S[1][0], s11 = S[1][1], s12 = S[1][2];
-    const mkc_real s20 = S[2][0], s21 = S[2][1], s22 = S[2][2];
-    int k = 0;
-    if (count > 0) do {   /* do-while: -Os keeps a for loop's test at the top, one more branch a pass */
-        mkc_real v0 = g->raw[k][0] - b0, v1 = g->raw[k][1] - b1, v2 = g->raw[k][2] - b2;
-        mkc_real m0 = v0 * s00 + v1 * s01 + v2 * s02;
-        mkc_real m1 = v0 * s10 + v1 * s11 + v2 * s12;
-        mkc_real m2 = v0 * s20 + v1 * s21 + v2 * s22;
-        out[k] = MKC_SQRT_R(m0 * m0 + m1 * m1 + m2 * m2);
-    } while (++k < count);
+    int k;
+    for (k = 0; k < count; k++)
+        out[k] = mkc__calibrated_norm(g, k, b, S, NULL);
 }
 
 /* The cells of the window's samples around the current centre c0. */
