@@ -542,17 +542,13 @@ static int finite3(mkc_real x, mkc_real y, mkc_real z)
 }
 
 /* One sample through the window (kernels/magwindow.py mag_learn_many's loop body), then the
- * checkpoint if it ran an E-step. */
+ * checkpoint if it ran an E-step. The caller has checked the sample (finite3). */
 static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
 {
     mkc_core_t *c = &g->core;
     mkc_real xk[9], yk[1] = {RC(1.0)};
     int W = c->cfg.window, cell, count, slot, st, j;
     int64_t esteps;
-    if (!finite3(mx, my, mz)) {
-        c->counters.rejected += 1;
-        return MKC_REJECTED;
-    }
     mkc__ellipsoid_features(mx, my, mz, g->c0, g->s0, xk);
     /* bounded normalised coordinates keep every product of features finite (Python: any finite) */
     for (j = 6; j < 9; j++) {
@@ -606,14 +602,14 @@ static void first_normalisation(mkc_mag_t *g)
 int mkc_mag_push(mkc_mag_t *cal, mkc_real mx, mkc_real my, mkc_real mz)
 {
     int k, st = MKC_WARMING_UP;
-    if (cal->s0 > RC(0.0))
-        return feed(cal, mx, my, mz);
-    /* gather init_samples finite samples for the first normalisation; raw[] holds them (each
-     * goes back to its own slot: the window is empty, so slot k = sample k) */
     if (!finite3(mx, my, mz)) {
         cal->core.counters.rejected += 1;
         return MKC_REJECTED;
     }
+    if (cal->s0 > RC(0.0))
+        return feed(cal, mx, my, mz);
+    /* gather init_samples finite samples for the first normalisation; raw[] holds them (each
+     * goes back to its own slot: the window is empty, so slot k = sample k) */
     cal->raw[cal->pending][0] = mx;
     cal->raw[cal->pending][1] = my;
     cal->raw[cal->pending][2] = mz;
