@@ -84,9 +84,7 @@ mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real
     int k;
     if (!(r > RC(0.0)) || count <= 0)
         return RC(HUGE_VAL);
-#define DIST(k) (MKC_SQRT_R((g->raw[(k)][0] - c[0]) * (g->raw[(k)][0] - c[0]) \
-                            + (g->raw[(k)][1] - c[1]) * (g->raw[(k)][1] - c[1]) \
-                            + (g->raw[(k)][2] - c[2]) * (g->raw[(k)][2] - c[2])) - r)
+#define DIST(k) (mkc__raw_distance(g, (k), c) - r)
     for (k = 0; k < count; k++)
         w[k] = DIST(k);
     med = mkc__median(w, count);

@@ -590,10 +590,8 @@ static void first_normalisation(mkc_mag_t *g)
             w[k] = g->raw[k][j];
         g->c0[j] = mkc__median(w, n);
     }
-    for (k = 0; k < n; k++) {
-        mkc_real d0 = g->raw[k][0] - g->c0[0], d1 = g->raw[k][1] - g->c0[1], d2 = g->raw[k][2] - g->c0[2];
-        w[k] = MKC_SQRT_R(d0 * d0 + d1 * d1 + d2 * d2);
-    }
+    for (k = 0; k < n; k++)
+        w[k] = mkc__raw_distance(g, k, g->c0);
     g->s0 = mkc__median(w, n);
     if (!(g->s0 != RC(0.0)))               /* "or 1.0" */
         g->s0 = RC(1.0);

@@ -158,6 +158,12 @@ mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, cons
     return MKC_SQRT_R(m0 * m0 + m1 * m1 + m2 * m2);
 }
 
+mkc_real mkc__raw_distance(const mkc_mag_t *g, int k, const mkc_real *c)
+{
+    mkc_real d0 = g->raw[k][0] - c[0], d1 = g->raw[k][1] - c[1], d2 = g->raw[k][2] - c[2];
+    return MKC_SQRT_R(d0 * d0 + d1 * d1 + d2 * d2);
+}
+
 /* |S (raw_k - b)| for k < count into out: mkc__calibrated_norm's operations (one copy of them) */
 void mkc__calibrated_norms(const mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real *out)
 {

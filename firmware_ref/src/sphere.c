@@ -215,9 +215,7 @@ static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, m
 {
     mkc_real *tmp = g->core.ebuf, med, mad, thr;
     int k, n = 0;
-#define DIST_RES(k) (MKC_SQRT_R((g->raw[(k)][0] - centre[0]) * (g->raw[(k)][0] - centre[0]) \
-                                + (g->raw[(k)][1] - centre[1]) * (g->raw[(k)][1] - centre[1]) \
-                                + (g->raw[(k)][2] - centre[2]) * (g->raw[(k)][2] - centre[2])) - F)
+#define DIST_RES(k) (mkc__raw_distance(g, (k), centre) - F)
     for (k = 0; k < count; k++)
         tmp[k] = DIST_RES(k);
     med = mkc__median(tmp, count);
