@@ -24,6 +24,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     mkc_real *w = g->core.ebuf, m[3], med, mad, thr, gain, sa = RC(0.0), st = RC(0.0);
     mkc_creal sums[MKC_N_CELLS], ss = CR(0.0), se;
     int used[MKC_N_CELLS], k, n = 0, j, G = 0;
+    uint32_t inlier[(MKC_W + 31) / 32];         /* IS_IN of each row, for the second pass */
 #define EA(k) (calibrated(g, (k), acc, m) / acc->field - RC(1.0))
     /* the MAD of e_t (stats.c mkc__mad_about_median's steps). The first three passes fill w with
      * the trial's norms |m_cal| (mkc__calibrated_norms), then work in place. */
@@ -38,9 +39,12 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_IN(et, ea) (!(mad != RC(0.0) && MKC_FABS_R((et) - med) > thr) && isfinite(et) && isfinite(ea))
     mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
+    for (k = 0; k < (count + 31) / 32; k++)
+        inlier[k] = 0u;
     for (k = 0; k < count; k++) {
         mkc_real et = w[k] / trial->field - RC(1.0), ea = EA(k);
         if (IS_IN(et, ea)) {
+            inlier[k >> 5] |= 1u << (k & 31);
             w[n++] = ea * ea - et * et;        /* compacted in place: n <= k */
             sa += ea * ea;                     /* residual_ratio's sums, in sample order */
             st += et * et;
@@ -54,8 +58,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         used[k] = 0;
     }
     for (k = 0, j = 0; k < count; k++) {
-        mkc_real mt[3], nk = calibrated(g, k, trial, mt), et = nk / trial->field - RC(1.0), ea = EA(k);
-        if (IS_IN(et, ea)) {
+        if (inlier[k >> 5] >> (k & 31) & 1u) {
+            mkc_real mt[3], nk = calibrated(g, k, trial, mt);
             /* numpy: cal / max(|cal|, 1e-300), the zero vector's cell at |cal| = 0 */
             int c = nk > RC(0.0) ? mkc__unit_direction_cell(mt[0] / nk, mt[1] / nk, mt[2] / nk)
                                  : mkc__unit_direction_cell(RC(0.0), RC(0.0), RC(0.0));
