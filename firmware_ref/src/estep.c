@@ -120,7 +120,17 @@ mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, i
     return objective(ls, ld, e2, n, a, pull, g0, g1, nu);
 }
 
-#define FIN3(a, b, c) (isfinite(a) && isfinite(b) && isfinite(c))
+/* 1 when F and its gradient (g0, g1) are finite */
+MKC_NOINLINE static int fin3(mkc_ereal a, mkc_ereal b, mkc_ereal c)
+{
+    return isfinite(a) && isfinite(b) && isfinite(c);
+}
+
+/* 1 when coordinate z (gradient g) may move: not held at a bound of [lo, hi] by its gradient */
+MKC_NOINLINE static int is_free(mkc_ereal z, mkc_ereal g, mkc_ereal lo, mkc_ereal hi)
+{
+    return !((z <= lo && g > EC(0.0)) || (z >= hi && g < EC(0.0)));
+}
 #define CLAMP(v, lo, hi) mkc__min_e(mkc__max_e((v), (lo)), (hi))
 
 /* Maximum-likelihood (sigma, d) of one channel from the squared residuals e2[:n], warm-started at
@@ -149,7 +159,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
     z0 = CLAMP(MKC_LOG_E(sigma0), lo0, hi0);
     z1 = CLAMP(MKC_LOG_E(d0), lo1, hi1);
     F = objective(z0, z1, e2, n, a, pull, &g0, &g1, nu);
-    if (!FIN3(F, g0, g1)) {
+    if (!fin3(F, g0, g1)) {
         *sigma_out = sigma0;
         *d_out = d0;
         *F_out = F;
@@ -170,8 +180,8 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
     while (it < max_iter + MKC_FAR_EXTRA_ITER) {
         int free0, free1, accepted = 0, ls;
         mkc_ereal pg0, pg1, pgmax, p0, p1, pmax, alpha, alpha0, pred, s0, s1, y0, y1, sy;
-        free0 = !((z0 <= lo0 && g0 > EC(0.0)) || (z0 >= hi0 && g0 < EC(0.0)));
-        free1 = !((z1 <= lo1 && g1 > EC(0.0)) || (z1 >= hi1 && g1 < EC(0.0)));
+        free0 = is_free(z0, g0, lo0, hi0);
+        free1 = is_free(z1, g1, lo1, hi1);
         pg0 = free0 ? g0 : EC(0.0);
         pg1 = free1 ? g1 : EC(0.0);
         pgmax = mkc__max_e(MKC_FABS_E(pg0), MKC_FABS_E(pg1));    /* the projected gradient's size */
@@ -203,7 +213,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
             n0 = CLAMP(z0 + alpha * p0, lo0, hi0);
             n1 = CLAMP(z1 + alpha * p1, lo1, hi1);
             Fn = objective(n0, n1, e2, n, a, pull, &gn0, &gn1, nun);
-            if (FIN3(Fn, gn0, gn1)) {
+            if (fin3(Fn, gn0, gn1)) {
                 if (Fn <= F + EC(1e-4) * (g0 * (n0 - z0) + g1 * (n1 - z1))) {
                     accepted = 1;
                     break;
@@ -222,7 +232,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
                 mkc_ereal gt0, gt1;
                 mkc_ereal nut[2];
                 mkc_ereal Ft = objective(t0, t1, e2, n, a, pull, &gt0, &gt1, nut);
-                if (!FIN3(Ft, gt0, gt1) || Ft >= Fn)
+                if (!fin3(Ft, gt0, gt1) || Ft >= Fn)
                     break;
                 alpha *= EC(2.0);
                 n0 = t0;

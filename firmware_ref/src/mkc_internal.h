@@ -87,6 +87,14 @@ int mkc__sector_of(float x, float y);   /* stats.c */
 #define MKC_TINY_ACC 1e-37
 #endif
 
+/* A helper kept out of line: at -Os GCC inlines a small static function at each of its call sites
+ * even where one call is shorter (checkpoint code, where the call costs nothing that matters). */
+#if defined(__GNUC__)
+#define MKC_NOINLINE __attribute__((noinline))
+#else
+#define MKC_NOINLINE
+#endif
+
 /* min/max with Numba's semantics for the values that occur: the first argument on ties, NaN wins. */
 #define MKC_MIN(a, b) mkc__min_d((double)(a), (double)(b))
 static inline double mkc__min_d(double a, double b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
