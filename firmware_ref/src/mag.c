@@ -123,7 +123,7 @@ static void emit(mkc_mag_t *g)
 }
 
 /* The checkpoint's event: the calibration cal, or none (NULL: a checkpoint without one). */
-static void fill_event(mkc_mag_t *g, int64_t seen, int64_t esteps, const mkc_mag_calibration *cal)
+MKC_NOINLINE static void fill_event(mkc_mag_t *g, int64_t seen, int64_t esteps, const mkc_mag_calibration *cal)
 {
     mkc_mag_event *ev = &g->last_event;
     int j;
@@ -239,7 +239,7 @@ static void keep_cold_estimate(mkc_mag_t *g)
 }
 
 /* The kept warm estimate back into A .. fit for another cold start from it; C still keeps it. */
-static void reload_warm_estimate(mkc_mag_t *g)
+MKC_NOINLINE static void reload_warm_estimate(mkc_mag_t *g)
 {
     kept_bytes(g, offsetof(mkc_core_t, A), (unsigned char *)(void *)&g->core + offsetof(mkc_core_t, A),
                MKC_CORE_SAVED_BYTES);
@@ -248,7 +248,7 @@ static void reload_warm_estimate(mkc_mag_t *g)
 
 /* A cold start's score: the window objective at its end (HUGE_VAL if it ended singular or
  * non-finite). */
-static mkc_ereal cold_score(mkc_core_t *c, int status)
+MKC_NOINLINE static mkc_ereal cold_score(mkc_core_t *c, int status)
 {
     mkc_ereal f;
     if (status != MKC_OK && status != MKC_NOT_CONVERGED)

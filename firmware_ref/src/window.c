@@ -51,7 +51,7 @@ const mkc_real *mkc__row(const mkc_core_t *c, int s, int i, mkc_real *buf)
     return row_at(c, s, i, buf);
 }
 
-static mkc_real target(const mkc_core_t *c, int s, int i)
+MKC_NOINLINE static mkc_real target(const mkc_core_t *c, int s, int i)
 {
     if (c->rows)
         return RC(1.0);
@@ -59,7 +59,7 @@ static mkc_real target(const mkc_core_t *c, int s, int i)
 }
 
 /* r = y - x^T theta, subtracting in ascending j (the reference's residual). */
-static mkc_real residual_of(const mkc_real *x, mkc_real y, const mkc_real *theta, int n)
+MKC_NOINLINE static mkc_real residual_of(const mkc_real *x, mkc_real y, const mkc_real *theta, int n)
 {
     int j;
     for (j = 0; j < n; j++)
@@ -487,7 +487,7 @@ int mkc__rebuild(mkc_core_t *c)
 }
 
 /* The weight c = w / d^2 a rebuild round at theta records for row (s, i), with rebuild's operations. */
-static mkc_real weight_at(const mkc_core_t *c, int s, int i, const mkc_real *theta, mkc_real sigma, mkc_real d)
+MKC_NOINLINE static mkc_real weight_at(const mkc_core_t *c, int s, int i, const mkc_real *theta, mkc_real sigma, mkc_real d)
 {
     mkc_real buf[MKC_N];
     mkc_real r = residual_at(c, s, i, theta, buf), w;
