@@ -94,12 +94,18 @@ static void set_normalisation(mkc_mag_t *g, const mkc_real *c0, mkc_real s0, con
     }
 }
 
+/* |a - b| in mkc_creal, each difference rounded in mkc_real first */
+MKC_NOINLINE static mkc_creal distance_c(const mkc_real *a, const mkc_real *b)
+{
+    mkc_creal d0 = (mkc_creal)(a[0] - b[0]), d1 = (mkc_creal)(a[1] - b[1]), d2 = (mkc_creal)(a[2] - b[2]);
+    return MKC_SQRT_C(d0 * d0 + d1 * d1 + d2 * d2);
+}
+
 /* _maybe_renormalise: re-centre on the trial centre and radius when they drift by > 10%. The trial
  * quadric in the new coordinates: (m - b)^T M (m - b) = 1 -> A' = F^2 M, B' = 0. */
 static void maybe_renormalise(mkc_mag_t *g, const mkc__geometry *geom, const mkc_real *b, mkc_real F)
 {
-    mkc_creal d0 = (mkc_creal)(b[0] - g->c0[0]), d1 = (mkc_creal)(b[1] - g->c0[1]), d2 = (mkc_creal)(b[2] - g->c0[2]);
-    mkc_creal dist = MKC_SQRT_C(d0 * d0 + d1 * d1 + d2 * d2), F2 = (mkc_creal)F * (mkc_creal)F;
+    mkc_creal dist = distance_c(b, g->c0), F2 = (mkc_creal)F * (mkc_creal)F;
     mkc_real theta[9];
     if (!(dist > CR(0.1) * (mkc_creal)g->s0 || MKC_FABS_C((mkc_creal)F / (mkc_creal)g->s0 - CR(1.0)) > CR(0.1)))
         return;
@@ -166,14 +172,11 @@ static int try_final_normalisation(mkc_mag_t *g, int count, int64_t seen, int64_
  * calibration confirmed last (within the disagreement tolerance): steady streams pay nothing. */
 static int needs_confirmation(const mkc_mag_t *g, const mkc_real *b, mkc_real F)
 {
-    mkc_creal d0, d1, d2, tol;
+    mkc_creal tol;
     if (!g->has_confirmed)
         return 1;
     tol = (mkc_creal)g->rules.max_disagreement_rel * MKC_FABS_C((mkc_creal)F);
-    d0 = (mkc_creal)(b[0] - g->confirmed_b[0]);
-    d1 = (mkc_creal)(b[1] - g->confirmed_b[1]);
-    d2 = (mkc_creal)(b[2] - g->confirmed_b[2]);
-    return !(MKC_SQRT_C(d0 * d0 + d1 * d1 + d2 * d2) <= tol && MKC_FABS_C((mkc_creal)(F - g->confirmed_F)) <= tol);
+    return !(distance_c(b, g->confirmed_b) <= tol && MKC_FABS_C((mkc_creal)(F - g->confirmed_F)) <= tol);
 }
 
 /* The cold-start check runs in the estimate's own state and keeps the warm one meanwhile in its
