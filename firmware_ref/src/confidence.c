@@ -37,7 +37,7 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         w[k] = MKC_FABS_R((w[k] / trial->field - RC(1.0)) - med);
     mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
     thr = RC(MKC_OUTLIER_K) * mad;
-#define IS_IN(et, ea) (!(mad != RC(0.0) && MKC_FABS_R((et) - med) > thr) && isfinite(et) && isfinite(ea))
+#define IS_IN(et, ea) (!(mad != RC(0.0) && MKC_FABS_R((et) - med) > thr) && MKC_ISFINITE(et) && MKC_ISFINITE(ea))
     mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
     for (k = 0; k < (count + 31) / 32; k++)
         inlier[k] = 0u;

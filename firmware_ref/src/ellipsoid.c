@@ -39,10 +39,10 @@ int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_re
     int i, j;
     quadric_from_theta(theta, A, B);
     for (i = 0; i < 3; i++) {
-        if (!isfinite(B[i]))
+        if (!MKC_ISFINITE(B[i]))
             return MKC_REASON_NOT_FINITE;
         for (j = 0; j < 3; j++)
-            if (!isfinite(A[i][j]))
+            if (!MKC_ISFINITE(A[i][j]))
                 return MKC_REASON_NOT_FINITE;
     }
     eig3((const mkc_creal(*)[3])A, eigA, NULL);

@@ -123,7 +123,7 @@ mkc_ereal mkc__estep_objective(mkc_ereal ls, mkc_ereal ld, const mkc_real *e2, i
 /* 1 when F and its gradient (g0, g1) are finite */
 MKC_NOINLINE static int fin3(mkc_ereal a, mkc_ereal b, mkc_ereal c)
 {
-    return isfinite(a) && isfinite(b) && isfinite(c);
+    return MKC_ISFINITE(a) && MKC_ISFINITE(b) && MKC_ISFINITE(c);
 }
 
 /* 1 when coordinate z (gradient g) may move: not held at a bound of [lo, hi] by its gradient */
@@ -169,7 +169,7 @@ int mkc__estep_channel(const mkc_real *e2, int n, mkc_ereal a, mkc_ereal sigma0,
     h00 = EC(0.5);
     h01 = EC(0.0);
     h11 = EC(0.5);
-    if (H[0] > EC(0.0) && H[2] > EC(0.0) && H[0] * H[2] - H[1] * H[1] > EC(0.0) && isfinite(H[0] + H[1] + H[2])) {
+    if (H[0] > EC(0.0) && H[2] > EC(0.0) && H[0] * H[2] - H[1] * H[1] > EC(0.0) && MKC_ISFINITE(H[0] + H[1] + H[2])) {
         h00 = H[0];
         h01 = H[1];
         h11 = H[2];

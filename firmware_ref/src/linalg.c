@@ -6,6 +6,7 @@
 /* mkc_internal.h's float min/max (Numba's semantics: the first argument on ties, NaN wins). */
 float mkc__min_f(float a, float b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
 float mkc__max_f(float a, float b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
+int mkc__finite_f(float x) { return isfinite(x); }
 
 /* Solve A x = b for symmetric positive definite A[:n, :n] (lower triangle and diagonal read).
  * Jacobi equilibration D A D y = D b, x = D y with D = diag(A_ii^-1/2), then Cholesky; the diagonal
@@ -18,7 +19,7 @@ int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, 
     mkc_acc lmax = AC(0.0), lmin = AC(HUGE_VAL), r;
     for (i = 0; i < n; i++) {
         mkc_acc aii = A[i][i];
-        if (!(aii > AC(0.0)) || !isfinite(aii)) {
+        if (!(aii > AC(0.0)) || !MKC_ISFINITE(aii)) {
             *cond = AC(HUGE_VAL);
             return MKC_SINGULAR;
         }
@@ -60,7 +61,7 @@ int mkc__spd_solve(const mkc_acc A[MKC_N][MKC_N], const mkc_acc *b, mkc_acc *x, 
     }
     for (i = 0; i < n; i++) {
         x[i] *= D[i];
-        if (!isfinite(x[i])) {
+        if (!MKC_ISFINITE(x[i])) {
             *cond = AC(HUGE_VAL);
             return MKC_NONFINITE;
         }

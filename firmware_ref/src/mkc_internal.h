@@ -100,6 +100,10 @@ int mkc__sector_of(float x, float y);   /* stats.c */
 static inline double mkc__min_d(double a, double b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
 static inline double mkc__max_d(double a, double b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
 float mkc__min_f(float a, float b);   /* linalg.c: one copy for the library, not one per file */
+int mkc__finite_f(float x);           /* linalg.c: isfinite of a float, one copy */
+/* isfinite(x) of a float or double x: a float's through mkc__finite_f (-Os expands isfinite at each
+ * use), a double's inline (the branch not taken is removed at compile time) */
+#define MKC_ISFINITE(x) (sizeof(x) == sizeof(float) ? mkc__finite_f((float)(x)) : isfinite(x))
 float mkc__max_f(float a, float b);
 #ifdef MKC_USE_FLOAT
 #define mkc__min_r mkc__min_f

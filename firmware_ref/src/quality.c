@@ -159,7 +159,7 @@ uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real f
     if (g->unit_ut) {
         if (!(R->field_lo_ut <= field && field <= R->field_hi_ut))
             fails |= MKC_FAIL_FIELD_RANGE;
-    } else if (!(isfinite(field) && field > RC(0.0))) {
+    } else if (!(MKC_ISFINITE(field) && field > RC(0.0))) {
         fails |= MKC_FAIL_FIELD_NONPOSITIVE;
     }
     if (disagreement >= CR(0.0) && !(disagreement <= (mkc_creal)R->max_disagreement_rel * MKC_FABS_C((mkc_creal)field)))

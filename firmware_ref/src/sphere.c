@@ -36,7 +36,7 @@ static int chol4(const mkc_creal N[4][4], const mkc_creal *r, mkc_creal *x)
         mkc_creal s = N[j][j];
         for (k = 0; k < j; k++)
             s -= L[j][k] * L[j][k];
-        if (!(s > CR(0.0)) || !isfinite(s))
+        if (!(s > CR(0.0)) || !MKC_ISFINITE(s))
             return 0;
         L[j][j] = MKC_SQRT_C(s);
         for (i = j + 1; i < 4; i++) {
@@ -201,7 +201,7 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
         bb[j] = (mkc_real)x[j];
     kk = (mkc_real)x[3];
     F2 = kk + (bb[0] * bb[0] + bb[1] * bb[1] + bb[2] * bb[2]);
-    if (!(isfinite(F2) && F2 > RC(0.0)))
+    if (!(MKC_ISFINITE(F2) && F2 > RC(0.0)))
         return 0;
     for (j = 0; j < 3; j++)
         b_out[j] = c[j] + scale * bb[j];
@@ -301,7 +301,7 @@ int mkc__sphere_theta(const mkc_creal *c, mkc_creal r, mkc_real *theta)
     return 1;
 #else
     mkc_creal k = r * r - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]);
-    if (!(isfinite(k) && k > CR(0.0)))
+    if (!(MKC_ISFINITE(k) && k > CR(0.0)))
         return 0;
     theta[0] = (mkc_real)(CR(1.0) / k);
     theta[1] = (mkc_real)(CR(1.0) / k);

@@ -832,11 +832,6 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
 
 /* ---- initialisation (state.py StreamConfig / allocate) ---- */
 
-/* isfinite, one copy for the settings' checks below */
-MKC_NOINLINE static int finite_r(mkc_real x)
-{
-    return isfinite(x);
-}
 
 int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,
                    const mkc_real *theta0, int rows)
@@ -861,19 +856,19 @@ int mkc__core_init(mkc_core_t *c, const mkc_config *cfg, const mkc_real *sigma0,
         cfg->fp_rounds < 0 || cfg->estep_max_iter < 0 || cfg->refactor_every < 0 || cfg->min_samples < 0)
         return MKC_BAD_INPUT;
     if (!(r.sigma_lo > RC(0.0) && r.sigma_lo < r.sigma_hi) || !(r.d_lo > RC(0.0) && r.d_lo < r.d_hi) ||
-        !(r.a_factor > RC(0.0)) || !finite_r(r.a) || !(r.estep_gtol >= RC(0.0)) || !(r.fp_tol >= RC(0.0)) ||
-        !(r.sigma_start > RC(0.0)) || !finite_r(r.sigma_hi) || !finite_r(r.d_hi) || !finite_r(r.sigma_start) ||
-        !(r.sigma_pull >= RC(0.0)) || !finite_r(r.sigma_pull))
+        !(r.a_factor > RC(0.0)) || !MKC_ISFINITE(r.a) || !(r.estep_gtol >= RC(0.0)) || !(r.fp_tol >= RC(0.0)) ||
+        !(r.sigma_start > RC(0.0)) || !MKC_ISFINITE(r.sigma_hi) || !MKC_ISFINITE(r.d_hi) || !MKC_ISFINITE(r.sigma_start) ||
+        !(r.sigma_pull >= RC(0.0)) || !MKC_ISFINITE(r.sigma_pull))
         return MKC_BAD_INPUT;
     for (i = 0; i < m; i++) {
-        if (sigma0 && !(sigma0[i] > RC(0.0) && finite_r(sigma0[i])))
+        if (sigma0 && !(sigma0[i] > RC(0.0) && MKC_ISFINITE(sigma0[i])))
             return MKC_BAD_INPUT;
-        if (d0 && !(d0[i] > RC(0.0) && finite_r(d0[i])))
+        if (d0 && !(d0[i] > RC(0.0) && MKC_ISFINITE(d0[i])))
             return MKC_BAD_INPUT;
     }
     if (theta0)
         for (i = 0; i < n; i++)
-            if (!finite_r(theta0[i]))
+            if (!MKC_ISFINITE(theta0[i]))
                 return MKC_BAD_INPUT;
     for (k = 0; k < sizeof(mkc_core_t); k++)       /* all zero, as numpy.zeros */
         p[k] = 0;
