@@ -8,6 +8,12 @@
  */
 #include "mkc_internal.h"
 
+/* sqrt(mean(x[0..n-1])), the mean numpy's (pairwise) */
+MKC_NOINLINE static mkc_real root_mean(const mkc_real *x, int n)
+{
+    return MKC_SQRT_R(mkc__pairwise_sum(x, n) / (mkc_real)n);
+}
+
 /* np.std of x[0..n-1] (work: n scratch values, may be x itself): sqrt(mean((x - mean(x))^2)). */
 static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
 {
@@ -17,7 +23,7 @@ static mkc_real np_std(const mkc_real *x, int n, mkc_real *work)
         mkc_real d = x[k] - mean;
         work[k] = d * d;
     }
-    return MKC_SQRT_R(mkc__pairwise_sum(work, n) / (mkc_real)n);
+    return root_mean(work, n);
 }
 
 void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real F,
@@ -57,13 +63,13 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
         }
     }
     /* (nin >= count / 2 always: at least half the residuals lie within one MAD of the median) */
-    q[MKC_Q_RESIDUAL_RMS] = nin ? MKC_SQRT_R(mkc__pairwise_sum(w, nin) / (mkc_real)nin) : RC(HUGE_VAL);
+    q[MKC_Q_RESIDUAL_RMS] = nin ? root_mean(w, nin) : RC(HUGE_VAL);
     mkc__calibrated_norms(g, count, b, S, w);
     for (k = 0; k < count; k++) {
         mkc_real r = w[k] - F;
         w[k] = r * r;
     }
-    q[MKC_Q_RESIDUAL_RMS_ALL] = MKC_SQRT_R(mkc__pairwise_sum(w, count) / (mkc_real)count);
+    q[MKC_Q_RESIDUAL_RMS_ALL] = root_mean(w, count);
     /* np.std of the norms, then of the inliers' norms (compacted), each in w (np_std works in place) */
     mkc__calibrated_norms(g, count, b, S, w);
     q[MKC_Q_NORM_SPREAD] = np_std(w, count, w) / F;
