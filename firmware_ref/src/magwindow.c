@@ -11,25 +11,15 @@
 #error "magwindow.c: some_cell_fuller reads the cell counts eight at a time"
 #endif
 
-/* Cell 0..71 of a direction (need not be unit length; 0 for the zero vector). */
+/* Cell 0..71 of a direction (need not be unit length; 0 for the zero vector): the cell of
+ * (vx, vy, vz / |v|) as mkc__unit_direction_cell takes it (the band from the unit z, the sector from
+ * vx, vy, whose scale the sector does not depend on), one copy of its arithmetic. */
 int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz)
 {
     mkc_real r = MKC_SQRT_R(vx * vx + vy * vy + vz * vz);
-    mkc_real z, lon;
-    int band, sector;
     if (!(r > RC(0.0)))
         return 0;
-    z = mkc__min_r(mkc__max_r(vz / r, RC(-1.0)), RC(1.0));
-    band = (int)((z + RC(1.0)) * RC(0.5) * RC(MKC_N_BANDS));
-    band = band < MKC_N_BANDS - 1 ? band : MKC_N_BANDS - 1;
-#if MKC_SECTOR_BY_COMPARISON
-    if (vx != RC(0.0) && vy != RC(0.0))
-        return band * MKC_N_SECTORS + mkc__sector_of(vx, vy);
-#endif
-    lon = MKC_ATAN2_AXES_R(vy, vx) + RC(MKC_PI);
-    sector = (int)(lon / (RC(2.0) * RC(MKC_PI)) * RC(MKC_N_SECTORS));
-    sector = sector < MKC_N_SECTORS - 1 ? sector : MKC_N_SECTORS - 1;
-    return band * MKC_N_SECTORS + sector;
+    return mkc__unit_direction_cell(vx, vy, vz / r);
 }
 
 /* Four consecutive slot cells, or two consecutive cell counts, as one 32-bit word in any byte
