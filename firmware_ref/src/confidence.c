@@ -9,7 +9,7 @@
 
 
 /* m = S (raw_k - b); returns |m| (relative_residuals' y row and its norm) */
-#define calibrated(g, k, c, m) mkc__calibrated_norm((g), (k), (c)->hard_iron, (c)->soft_iron, (m))
+#define calibrated(g, k, c, m) mkc__calibrated_norm((g)->raw[(k)], (c)->hard_iron, (c)->soft_iron, (m))
 
 /* supports_switch: 1 when the window supports replacing `acc` by `trial`, 2 when it does so strongly
  * (gain > Z_RESTART se, the pooled calibrator's restart test), 3 when strongly and `acc` fits the

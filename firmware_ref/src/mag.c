@@ -643,14 +643,10 @@ int mkc_mag_push_many(mkc_mag_t *cal, const mkc_real *mags, long T, int8_t *stat
 int mkc_mag_apply(const mkc_mag_t *cal, const mkc_real raw[3], mkc_real out[3])
 {
     const mkc_mag_calibration *a = &cal->accepted;
-    mkc_real v[3];
-    int i;
     if (!a->valid)
         return MKC_NOT_CALIBRATED;
-    for (i = 0; i < 3; i++)
-        v[i] = raw[i] - a->hard_iron[i];
-    for (i = 0; i < 3; i++)
-        out[i] = v[0] * a->soft_iron[i][0] + v[1] * a->soft_iron[i][1] + v[2] * a->soft_iron[i][2];
+    /* out = S (raw - b): the checkpoint code's calibrated vector (its norm unused) */
+    (void)mkc__calibrated_norm(raw, a->hard_iron, (const mkc_real(*)[3])a->soft_iron, out);
     return MKC_OK;
 }
 

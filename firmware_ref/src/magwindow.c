@@ -134,9 +134,9 @@ int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W)
     return oldest_slot_of_cell(g, target, W);
 }
 
-mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3], mkc_real *m)
+mkc_real mkc__calibrated_norm(const mkc_real *raw, const mkc_real *b, const mkc_real S[3][3], mkc_real *m)
 {
-    mkc_real v0 = g->raw[k][0] - b[0], v1 = g->raw[k][1] - b[1], v2 = g->raw[k][2] - b[2];
+    mkc_real v0 = raw[0] - b[0], v1 = raw[1] - b[1], v2 = raw[2] - b[2];
     mkc_real m0 = v0 * S[0][0] + v1 * S[0][1] + v2 * S[0][2];
     mkc_real m1 = v0 * S[1][0] + v1 * S[1][1] + v2 * S[1][2];
     mkc_real m2 = v0 * S[2][0] + v1 * S[2][1] + v2 * S[2][2];
@@ -159,7 +159,7 @@ void mkc__calibrated_norms(const mkc_mag_t *g, int count, const mkc_real *b, con
 {
     int k;
     for (k = 0; k < count; k++)
-        out[k] = mkc__calibrated_norm(g, k, b, S, NULL);
+        out[k] = mkc__calibrated_norm(g->raw[k], b, S, NULL);
 }
 
 /* The cells of the window's samples around the current centre c0. */

@@ -200,13 +200,14 @@ int mkc__cold_start_at(mkc_core_t *c, int rounds, const mkc_real *theta0);
 /* ---- magwindow.c (kernels/magwindow.py) ---- */
 int mkc__direction_cell(mkc_real vx, mkc_real vy, mkc_real vz);
 int mkc__choose_slot(const mkc_mag_t *g, int cell, int count, int W);
-/* |m_cal| of window row k, m_cal = S (raw_k - b); m (may be NULL): m_cal. The checkpoint code
- * recomputes it from raw (quality figures, switching test) instead of keeping it in the state. */
-mkc_real mkc__calibrated_norm(const mkc_mag_t *g, int k, const mkc_real *b, const mkc_real S[3][3], mkc_real *m);
+/* |m_cal| of a raw sample, m_cal = S (raw - b); m (may be NULL): m_cal. The checkpoint code
+ * recomputes it from a window row g->raw[k] (quality figures, switching test) instead of keeping it
+ * in the state; mkc_mag_apply takes its m_cal. */
+mkc_real mkc__calibrated_norm(const mkc_real *raw, const mkc_real *b, const mkc_real S[3][3], mkc_real *m);
 /* |raw_k - c|, the distance of window row k from the point c (sphere fit, its spread, the first
  * normalisation). */
 mkc_real mkc__raw_distance(const mkc_mag_t *g, int k, const mkc_real *c);
-/* out[k] = mkc__calibrated_norm(g, k, b, S, NULL) for k < count (the checkpoint code's passes over
+/* out[k] = mkc__calibrated_norm(g->raw[k], b, S, NULL) for k < count (the checkpoint code's passes over
  * the window). */
 void mkc__calibrated_norms(const mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real *out);
 

@@ -36,7 +36,7 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
         hit[k] = 0;
     /* m_cal = (raw - b) S^T; cells of m_cal / |m_cal|; residuals r = |m_cal| - F */
     for (k = 0; k < count; k++) {
-        mkc_real m[3], nk = mkc__calibrated_norm(g, k, b, S, m);
+        mkc_real m[3], nk = mkc__calibrated_norm(g->raw[k], b, S, m);
         if (nk > RC(0.0))
             hit[mkc__unit_direction_cell(m[0] / nk, m[1] / nk, m[2] / nk)] = 1;
     }
