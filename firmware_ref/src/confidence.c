@@ -84,16 +84,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
 /* sphere_spread: 1.4826 MAD of |m - c| - r over the window, relative to r (HUGE_VAL for r <= 0). */
 mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r)
 {
-    mkc_real *w = g->core.ebuf, med;
-    int k;
+    mkc_real med;
     if (!(r > RC(0.0)) || count <= 0)
         return RC(HUGE_VAL);
-#define DIST(k) (mkc__raw_distance(g, (k), c) - r)
-    for (k = 0; k < count; k++)
-        w[k] = DIST(k);
-    med = mkc__median(w, count);
-    for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R(DIST(k) - med);
-#undef DIST
-    return RC(MKC_MAD_SCALE) * mkc__median(w, count) / r;
+    return mkc__distance_mad(g, count, c, r, &med) / r;
 }

@@ -209,19 +209,26 @@ static int sphere_fit(mkc_mag_t *g, int count, const sel *m, mkc_real *b_out, mk
     return 1;
 }
 
+mkc_real mkc__distance_mad(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r, mkc_real *med)
+{
+    mkc_real *w = g->core.ebuf, m;
+    int k;
+    for (k = 0; k < count; k++)
+        w[k] = mkc__raw_distance(g, k, c) - r;
+    m = mkc__median(w, count);
+    for (k = 0; k < count; k++)
+        w[k] = MKC_FABS_R(mkc__raw_distance(g, k, c) - r - m);
+    *med = m;
+    return RC(MKC_MAD_SCALE) * mkc__median(w, count);
+}
+
 /* r_k = |m_k - centre| - F (recomputed, not stored); the selection |r_k - median| <= 3 * 1.4826 MAD
  * (all rows when the MAD is 0) into *s; returns how many rows it keeps. Scratch: g->core.ebuf. */
 static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, mkc_real F, sel *s)
 {
-    mkc_real *tmp = g->core.ebuf, med, mad, thr;
+    mkc_real med, mad = mkc__distance_mad(g, count, centre, F, &med), thr;
     int k, n = 0;
 #define DIST_RES(k) (mkc__raw_distance(g, (k), centre) - F)
-    for (k = 0; k < count; k++)
-        tmp[k] = DIST_RES(k);
-    med = mkc__median(tmp, count);
-    for (k = 0; k < count; k++)
-        tmp[k] = MKC_FABS_R(DIST_RES(k) - med);
-    mad = RC(1.4826) * mkc__median(tmp, count);
     s->use_mask = mad > RC(0.0);
     thr = RC(3.0) * mad;
     for (k = 0; k < (count + 31) / 32; k++)
