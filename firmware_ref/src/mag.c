@@ -16,18 +16,14 @@
 
 void mkc_mag_config_default(mkc_mag_config *cfg)
 {
-    mkc_config_default(&cfg->stream, 9, 1);
-    cfg->policy = MKC_POLICY_DIRECTION;
-    cfg->unit_ut = 1;
-    cfg->init_samples = 0;
-    cfg->rules.min_coverage = RC(MKC_DEF_MIN_COVERAGE);
-    cfg->rules.max_condition = RC(MKC_DEF_MAX_CONDITION);
-    cfg->rules.max_outlier_fraction = RC(MKC_DEF_MAX_OUTLIER_FRACTION);
-    cfg->rules.max_residual_rel = RC(MKC_DEF_MAX_RESIDUAL_REL);
-    cfg->rules.field_lo_ut = RC(MKC_DEF_FIELD_LO_UT);
-    cfg->rules.field_hi_ut = RC(MKC_DEF_FIELD_HI_UT);
-    cfg->rules.max_disagreement_rel = RC(MKC_DEF_MAX_DISAGREEMENT_REL);
-    cfg->switching = MKC_SWITCH_POOLED;
+    static const mkc_mag_config defaults = {
+        .stream = MKC__CONFIG_DEFAULTS(9, 1), .policy = MKC_POLICY_DIRECTION, .unit_ut = 1, .init_samples = 0,
+        .rules = {.min_coverage = RC(MKC_DEF_MIN_COVERAGE), .max_condition = RC(MKC_DEF_MAX_CONDITION),
+                  .max_outlier_fraction = RC(MKC_DEF_MAX_OUTLIER_FRACTION),
+                  .max_residual_rel = RC(MKC_DEF_MAX_RESIDUAL_REL), .field_lo_ut = RC(MKC_DEF_FIELD_LO_UT),
+                  .field_hi_ut = RC(MKC_DEF_FIELD_HI_UT), .max_disagreement_rel = RC(MKC_DEF_MAX_DISAGREEMENT_REL)},
+        .switching = MKC_SWITCH_POOLED};
+    *cfg = defaults;
 }
 
 int mkc_mag_init(mkc_mag_t *cal, const mkc_mag_config *cfg)

@@ -37,6 +37,19 @@ typedef double mkc_creal;
 #define AC(x) ((mkc_acc)(x))
 #define EC(x) ((mkc_ereal)(x))
 
+/* mkc_config_default's settings for n, m as an initializer (stream.c, and mag.c's defaults) */
+#define MKC__CONFIG_DEFAULTS(n_, m_) {                                                                   \
+    .n = (n_), .m = (m_),                                                                               \
+    .window = MKC_W < MKC_DEFAULT_WINDOW ? MKC_W : MKC_DEFAULT_WINDOW, /* min(capacity, the default) */ \
+    .estep_every = MKC_K, .fp_rounds = MKC_DEF_FP_ROUNDS, .estep_max_iter = MKC_DEF_ESTEP_MAX_ITER,      \
+    .refactor_every = MKC_DEF_REFACTOR_EVERY, .min_samples = MKC_DEF_MIN_SAMPLES,                        \
+    .sigma_lo = (mkc_api_real)MKC_DEF_SIGMA_LO, .sigma_hi = (mkc_api_real)MKC_DEF_SIGMA_HI,              \
+    .d_lo = (mkc_api_real)MKC_DEF_D_LO, .d_hi = (mkc_api_real)MKC_DEF_D_HI,                              \
+    .a_factor = (mkc_api_real)MKC_DEF_A_FACTOR, .a = (mkc_api_real)MKC_DEF_A,                            \
+    .estep_gtol = (mkc_api_real)MKC_DEF_ESTEP_GTOL, .fp_tol = (mkc_api_real)MKC_DEF_FP_TOL,              \
+    .sigma_start = (mkc_api_real)MKC_DEF_SIGMA_START, .sigma_pull = (mkc_api_real)MKC_DEF_SIGMA_PULL     \
+}
+
 /* The public numbers must be the Python ones (generated into mkc_tables.h). */
 typedef char mkc__check_status[(MKC_OK == MKC_T_OK && MKC_NOT_CONVERGED == MKC_T_NOT_CONVERGED &&
                                 MKC_SINGULAR == MKC_T_SINGULAR && MKC_NONFINITE == MKC_T_NONFINITE &&

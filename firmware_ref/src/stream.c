@@ -3,24 +3,10 @@
 
 void mkc_config_default(mkc_config *cfg, int n, int m)
 {
+    static const mkc_config defaults = MKC__CONFIG_DEFAULTS(0, 0);
+    *cfg = defaults;
     cfg->n = n;
     cfg->m = m;
-    cfg->window = MKC_W < MKC_DEFAULT_WINDOW ? MKC_W : MKC_DEFAULT_WINDOW;   /* min(capacity, the default) */
-    cfg->estep_every = MKC_K;
-    cfg->fp_rounds = MKC_DEF_FP_ROUNDS;
-    cfg->estep_max_iter = MKC_DEF_ESTEP_MAX_ITER;
-    cfg->refactor_every = MKC_DEF_REFACTOR_EVERY;
-    cfg->min_samples = MKC_DEF_MIN_SAMPLES;
-    cfg->sigma_lo = (mkc_api_real)MKC_DEF_SIGMA_LO;
-    cfg->sigma_hi = (mkc_api_real)MKC_DEF_SIGMA_HI;
-    cfg->d_lo = (mkc_api_real)MKC_DEF_D_LO;
-    cfg->d_hi = (mkc_api_real)MKC_DEF_D_HI;
-    cfg->a_factor = (mkc_api_real)MKC_DEF_A_FACTOR;
-    cfg->a = (mkc_api_real)MKC_DEF_A;
-    cfg->estep_gtol = (mkc_api_real)MKC_DEF_ESTEP_GTOL;
-    cfg->fp_tol = (mkc_api_real)MKC_DEF_FP_TOL;
-    cfg->sigma_start = (mkc_api_real)MKC_DEF_SIGMA_START;
-    cfg->sigma_pull = (mkc_api_real)MKC_DEF_SIGMA_PULL;
 }
 
 int mkc_stream_init(mkc_stream_t *st, const mkc_config *cfg, const mkc_real *sigma0, const mkc_real *d0,
