@@ -37,14 +37,11 @@ int mkc__geometry_from_theta(const mkc_real *theta, mkc__geometry *g, mkc_mag_re
 {
     mkc_creal A[3][3], B[3], eigA[3], r0[3], Ar0[3], k, lam[3];
     int i, j;
-    quadric_from_theta(theta, A, B);
-    for (i = 0; i < 3; i++) {
-        if (!MKC_ISFINITE(B[i]))
+    /* A and B are finite exactly when theta is (halving keeps a value finite or not) */
+    for (i = 0; i < 9; i++)
+        if (!MKC_ISFINITE(theta[i]))
             return MKC_REASON_NOT_FINITE;
-        for (j = 0; j < 3; j++)
-            if (!MKC_ISFINITE(A[i][j]))
-                return MKC_REASON_NOT_FINITE;
-    }
+    quadric_from_theta(theta, A, B);
     eig3((const mkc_creal(*)[3])A, eigA, NULL);
     if (eigA[0] * eigA[2] <= CR(0.0)) {
         reason->v[0] = MKC_REASON_VALUE(eigA[0]);
