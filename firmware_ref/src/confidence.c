@@ -61,8 +61,10 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
         if (inlier[k >> 5] >> (k & 31) & 1u) {
             mkc_real mt[3], nk = calibrated(g, k, trial, mt);
             /* numpy: cal / max(|cal|, 1e-300), the zero vector's cell at |cal| = 0 */
-            int c = nk > RC(0.0) ? mkc__unit_direction_cell(mt[0] / nk, mt[1] / nk, mt[2] / nk)
-                                 : mkc__unit_direction_cell(RC(0.0), RC(0.0), RC(0.0));
+            int c, i;
+            for (i = 0; i < 3; i++)
+                mt[i] = nk > RC(0.0) ? mt[i] / nk : RC(0.0);
+            c = mkc__unit_direction_cell(mt[0], mt[1], mt[2]);
             sums[c] += (mkc_creal)(w[j++] - gain);
             used[c] = 1;
         }
