@@ -28,14 +28,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
 #define EA(k) (calibrated(g, (k), acc, m) / acc->field - RC(1.0))
     /* the MAD of e_t (stats.c mkc__mad_about_median's steps). The first three passes fill w with
      * the trial's norms |m_cal| (mkc__calibrated_norms), then work in place. */
-    mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
-    for (k = 0; k < count; k++)
-        w[k] = w[k] / trial->field - RC(1.0);
-    med = mkc__median(w, count);
-    mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);
-    for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R((w[k] / trial->field - RC(1.0)) - med);
-    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    mad = mkc__calibrated_mad(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, trial->field,
+                              RC(1.0), &med);
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_IN(et, ea) (!(mad != RC(0.0) && MKC_FABS_R((et) - med) > thr) && MKC_ISFINITE(et) && MKC_ISFINITE(ea))
     mkc__calibrated_norms(g, count, trial->hard_iron, (const mkc_real(*)[3])trial->soft_iron, w);

@@ -261,6 +261,11 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
                           mkc_real condition, mkc_real *q);
 mkc_real mkc__weighted_condition(mkc_mag_t *g, int count);
 /* disagreement < 0: not checked (the reference's disagreement=None) */
+/* The median (*med) and 1.4826 MAD of e_k = |S (raw_k - b)| / div - sub over the window's rows
+ * (scratch: g->core.ebuf): the quality figures' residuals (div 1, sub F) and the switching test's
+ * relative residuals (div F, sub 1). */
+mkc_real mkc__calibrated_mad(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real div,
+                             mkc_real sub, mkc_real *med);
 uint32_t mkc__acceptance_check(const mkc_mag_t *g, const mkc_real *q, mkc_real field, mkc_creal disagreement,
                                mkc_mag_reason *reason);
 

@@ -8,6 +8,22 @@
  */
 #include "mkc_internal.h"
 
+mkc_real mkc__calibrated_mad(mkc_mag_t *g, int count, const mkc_real *b, const mkc_real S[3][3], mkc_real div,
+                             mkc_real sub, mkc_real *med)
+{
+    mkc_real *w = g->core.ebuf, m;
+    int k;
+    mkc__calibrated_norms(g, count, b, S, w);
+    for (k = 0; k < count; k++)
+        w[k] = w[k] / div - sub;
+    m = mkc__median(w, count);
+    mkc__calibrated_norms(g, count, b, S, w);
+    for (k = 0; k < count; k++)
+        w[k] = MKC_FABS_R((w[k] / div - sub) - m);
+    *med = m;
+    return RC(MKC_MAD_SCALE) * mkc__median(w, count);
+}
+
 /* sqrt(mean(x[0..n-1])), the mean numpy's (pairwise) */
 MKC_NOINLINE static mkc_real root_mean(const mkc_real *x, int n)
 {
@@ -42,14 +58,7 @@ void mkc__quality_figures(mkc_mag_t *g, int count, const mkc_real *b, const mkc_
     }
     /* outlier_mask: |r - median| > 3.5 * 1.4826 MAD (stats.c mkc__mad_about_median's steps). Each
      * pass below first fills w with the norms |m_cal| (mkc__calibrated_norms), then works in place. */
-    mkc__calibrated_norms(g, count, b, S, w);
-    for (k = 0; k < count; k++)
-        w[k] = w[k] - F;
-    med = mkc__median(w, count);
-    mkc__calibrated_norms(g, count, b, S, w);
-    for (k = 0; k < count; k++)
-        w[k] = MKC_FABS_R((w[k] - F) - med);
-    mad = RC(MKC_MAD_SCALE) * mkc__median(w, count);
+    mad = mkc__calibrated_mad(g, count, b, S, RC(1.0), F, &med);      /* r = |m_cal| / 1 - F, exactly */
     thr = RC(MKC_OUTLIER_K) * mad;
 #define IS_OUT(r) (mad != RC(0.0) && MKC_FABS_R((r) - med) > thr)
     /* residual_rms: over the inliers (compacted in place: nin <= k) */
