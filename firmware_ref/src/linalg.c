@@ -7,6 +7,7 @@
 float mkc__min_f(float a, float b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
 float mkc__max_f(float a, float b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
 int mkc__finite_f(float x) { return isfinite(x); }
+void mkc__count(int64_t *counter) { *counter += 1; }
 
 /* Solve A x = b for symmetric positive definite A[:n, :n] (lower triangle and diagonal read).
  * Jacobi equilibration D A D y = D b, x = D y with D = diag(A_ii^-1/2), then Cholesky; the diagonal

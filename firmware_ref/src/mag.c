@@ -119,7 +119,7 @@ static void maybe_renormalise(mkc_mag_t *g, const mkc__geometry *geom, const mkc
 
 static void emit(mkc_mag_t *g)
 {
-    g->checkpoints += 1;
+    mkc__count(&g->checkpoints);
     if (g->listener)
         g->listener(g->listener_user, g);
 }
@@ -552,7 +552,7 @@ static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
     /* bounded normalised coordinates keep every product of features finite (Python: any finite) */
     for (j = 6; j < 9; j++) {
         if (!(MKC_FABS_R(xk[j]) <= MKC_MAX_ABS_NORMALISED)) {
-            c->counters.rejected += 1;
+            mkc__count(&c->counters.rejected);
             return MKC_REJECTED;
         }
     }
@@ -600,7 +600,7 @@ int mkc_mag_push(mkc_mag_t *cal, mkc_real mx, mkc_real my, mkc_real mz)
 {
     int k, st = MKC_WARMING_UP;
     if (!finite3(mx, my, mz)) {
-        cal->core.counters.rejected += 1;
+        mkc__count(&cal->core.counters.rejected);
         return MKC_REJECTED;
     }
     if (cal->s0 > RC(0.0))

@@ -113,6 +113,7 @@ int mkc__sector_of(float x, float y);   /* stats.c */
 static inline double mkc__min_d(double a, double b) { return (a != a) ? a : ((b != b || b < a) ? b : a); }
 static inline double mkc__max_d(double a, double b) { return (a != a) ? a : ((b != b || b > a) ? b : a); }
 float mkc__min_f(float a, float b);   /* linalg.c: one copy for the library, not one per file */
+void mkc__count(int64_t *counter);    /* linalg.c: *counter += 1, the 64-bit increment of the rarer counters */
 int mkc__finite_f(float x);           /* linalg.c: isfinite of a float, one copy */
 /* isfinite(x) of a float or double x: a float's through mkc__finite_f (-Os expands isfinite at each
  * use), a double's inline (the branch not taken is removed at compile time) */

@@ -298,7 +298,7 @@ static int solve_window(mkc_core_t *c, mkc_acc *cond)
         for (q = p + 1; q < n; q++)
             c->A[p][q] = c->A[q][p];
     st = mkc__spd_solve((const mkc_acc(*)[MKC_N])c->A, c->b, c->xs, c->L, c->D, n, cond);
-    c->counters.factors += 1;
+    mkc__count(&c->counters.factors);
     if (st == MKC_OK) {
 #if defined(__GNUC__) && MKC_ACC_IS_REAL
         __builtin_memcpy(c->theta, c->xs, (size_t)n * sizeof c->theta[0]);   /* not memmove: see mkc__rebuild */
@@ -461,15 +461,15 @@ int mkc__rebuild(mkc_core_t *c)
 #endif
         if (wsum < (mkc_acc)n) {
             /* fewer effective equations than unknowns: the kernel lost the data (a bad theta) */
-            c->counters.singular += 1;
+            mkc__count(&c->counters.singular);
             c->counters.factor_age = -1;          /* L, D belong to an A that no longer exists */
             return MKC_SINGULAR;
         }
         st = solve_window(c, &cond);
         c->fit.cond = (mkc_real)cond;
-        c->counters.fp_iters += 1;
+        mkc__count(&c->counters.fp_iters);
         if (st != MKC_OK) {
-            c->counters.singular += 1;
+            mkc__count(&c->counters.singular);
             return st;
         }
         for (j = 0; j < n; j++) {
@@ -570,7 +570,7 @@ void mkc__estep_window(mkc_core_t *c)
         }
     }
     c->fit.last_objective = (mkc_real)Fsum;
-    c->counters.esteps += 1;
+    mkc__count(&c->counters.esteps);
 }
 
 /* kernels/window.py window_objective: the E-step objective (estep.c: the window's mean negative
@@ -627,7 +627,7 @@ static int initialise_window(mkc_core_t *c)
     st = solve_window(c, &cond);
     c->fit.cond = (mkc_real)cond;
     if (st != MKC_OK) {
-        c->counters.singular += 1;
+        mkc__count(&c->counters.singular);
         return st;
     }
     /* d unset (<= 0): start from the RMS of the WLS residuals; the first E-step refines it */
@@ -648,7 +648,7 @@ static int initialise_window(mkc_core_t *c)
 int mkc__restart(mkc_core_t *c)
 {
     int i;
-    c->counters.restarts += 1;
+    mkc__count(&c->counters.restarts);
     for (i = 0; i < c->cfg.m; i++) {
         c->sigma[i] = c->cfg.sigma_start;
         c->d[i] = RC(-1.0);
@@ -668,7 +668,7 @@ int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
     int count = (int)c->counters.count;
     int i, j, s;
     mkc_real buf[MKC_N];
-    c->counters.restarts += 1;
+    mkc__count(&c->counters.restarts);
     for (j = 0; j < n; j++)
         c->theta[j] = theta0[j];
     for (i = 0; i < m; i++) {
@@ -823,7 +823,7 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
             st = solve_window(c, &cond);
             c->fit.cond = (mkc_real)cond;
             if (st != MKC_OK)
-                c->counters.singular += 1;
+                mkc__count(&c->counters.singular);
         }
     }
     c->counters.status = st;
