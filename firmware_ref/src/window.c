@@ -461,13 +461,13 @@ int mkc__rebuild(mkc_core_t *c)
 #endif
         if (wsum < (mkc_acc)n) {
             /* fewer effective equations than unknowns: the kernel lost the data (a bad theta) */
-            mkc__count(&c->counters.singular);
             c->counters.factor_age = -1;          /* L, D belong to an A that no longer exists */
-            return MKC_SINGULAR;
+            st = MKC_SINGULAR;
+        } else {
+            st = solve_window(c, &cond);
+            c->fit.cond = (mkc_real)cond;
+            mkc__count(&c->counters.fp_iters);
         }
-        st = solve_window(c, &cond);
-        c->fit.cond = (mkc_real)cond;
-        mkc__count(&c->counters.fp_iters);
         if (st != MKC_OK) {
             mkc__count(&c->counters.singular);
             return st;
