@@ -519,6 +519,14 @@ int mkc__weights_recorded(const mkc_core_t *c)
     return 1;
 }
 
+/* Channel i's E-step starts from the default curvature (its inverse-Hessian warm start unknown). */
+MKC_NOINLINE static void forget_curvature(mkc_core_t *c, int i)
+{
+    c->Hes[i][0] = EC(0.0);
+    c->Hes[i][1] = EC(0.0);
+    c->Hes[i][2] = EC(0.0);
+}
+
 /* Algorithm 2 per channel on the window's residuals at the current theta, warm-started. The
  * residuals r = y - x^T theta are formed where they are used (only their squares are kept, in
  * ebuf); the rebuild that follows recomputes them with the same operations, so the same bits. */
@@ -548,9 +556,7 @@ void mkc__estep_window(mkc_core_t *c)
             /* The truncation bound moved by more than 2x (a burst entered or left the window): the
              * curvature learnt in the old regime would throw the first step to the box edge.
              * Start this E-step from the default curvature. */
-            c->Hes[i][0] = EC(0.0);
-            c->Hes[i][1] = EC(0.0);
-            c->Hes[i][2] = EC(0.0);
+            forget_curvature(c, i);
             /* A burst entered (a grew): restart sigma on the robust side; in the Gaussian regime the
              * likelihood's slope is weaker than the prior's pull (estep.c), so it would never be seen */
             if (c->a[i] > RC(0.0) && ai > RC(2.0) * c->a[i] && c->sigma[i] > RC(MKC_START_SIGMA_ROBUST))
@@ -652,9 +658,7 @@ int mkc__restart(mkc_core_t *c)
     for (i = 0; i < c->cfg.m; i++) {
         c->sigma[i] = c->cfg.sigma_start;
         c->d[i] = RC(-1.0);
-        c->Hes[i][0] = EC(0.0);
-        c->Hes[i][1] = EC(0.0);
-        c->Hes[i][2] = EC(0.0);
+        forget_curvature(c, i);
     }
     return initialise_window(c);
 }
@@ -675,9 +679,7 @@ int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
         mkc_acc acc = AC(0.0);
         mkc_real med, mad;
         c->sigma[i] = RC(MKC_START_SIGMA_ROBUST);
-        c->Hes[i][0] = EC(0.0);
-        c->Hes[i][1] = EC(0.0);
-        c->Hes[i][2] = EC(0.0);
+        forget_curvature(c, i);
         for (s = 0; s < count; s++) {
             mkc_real r = residual_at(c, s, i, c->theta, buf);
             c->ebuf[s] = r;
