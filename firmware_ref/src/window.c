@@ -796,15 +796,13 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
     c->counters.seen += 1;
     c->counters.since += 1;
     if (c->counters.count < c->cfg.min_samples) {
-        c->counters.status = MKC_WARMING_UP;
-        return MKC_WARMING_UP;
+        st = MKC_WARMING_UP;
+        goto done;
     }
     if (!ready) {
         st = initialise_window(c);
-        if (st != MKC_OK && st != MKC_NOT_CONVERGED) {
-            c->counters.status = st;
-            return st;
-        }
+        if (st != MKC_OK && st != MKC_NOT_CONVERGED)
+            goto done;
         c->counters.since = c->cfg.estep_every;        /* run the first E-step now */
     }
     if (c->counters.since >= c->cfg.estep_every) {
@@ -828,6 +826,7 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
                 mkc__count(&c->counters.singular);
         }
     }
+done:                                                  /* every exit records its status */
     c->counters.status = st;
     return st;
 }
