@@ -757,7 +757,7 @@ int mkc__learn_one(mkc_core_t *c, const mkc_real *xk, const mkc_real *yk, int sl
                                n);
         }
     } else {
-        c->counters.count += 1;
+        mkc__count(&c->counters.count);                /* only while the window fills */
     }
     ready = c->counters.esteps > 0 || c->counters.fp_iters > 0;
     store_row(c, slot, xk, yk);
