@@ -582,13 +582,9 @@ static int feed(mkc_mag_t *g, mkc_real mx, mkc_real my, mkc_real mz)
 /* Median of the per-axis values of the pending samples (held in raw[0..pending-1]). */
 static void first_normalisation(mkc_mag_t *g)
 {
-    int n = g->pending, k, j;
+    int n = g->pending, k;
     mkc_real *w = g->core.ebuf;               /* free: no E-step yet */
-    for (j = 0; j < 3; j++) {
-        for (k = 0; k < n; k++)
-            w[k] = g->raw[k][j];
-        g->c0[j] = mkc__median(w, n);
-    }
+    mkc__axis_medians(g, n, g->c0);
     for (k = 0; k < n; k++)
         w[k] = mkc__raw_distance(g, k, g->c0);
     g->s0 = mkc__median(w, n);

@@ -275,6 +275,8 @@ int mkc__supports_switch(mkc_mag_t *g, int count, const mkc_mag_calibration *tri
 /* mag.c: the accepted calibration becomes the switching pool's one member (a restored calibration) */
 void mkc__seed_pool(mkc_mag_t *g);
 mkc_real mkc__sphere_spread(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r);
+/* The coordinate-wise median of raw[0 .. count - 1] into med (sphere.c; scratch: g->core.ebuf) */
+void mkc__axis_medians(mkc_mag_t *g, int count, mkc_real *med);
 /* 1.4826 MAD of r_k = |raw_k - c| - r over the window's rows, their median into *med (sphere.c;
  * scratch: g->core.ebuf) */
 mkc_real mkc__distance_mad(mkc_mag_t *g, int count, const mkc_real *c, mkc_real r, mkc_real *med);

@@ -242,21 +242,27 @@ static int distance_selection(mkc_mag_t *g, int count, const mkc_real *centre, m
     return n;
 }
 
+void mkc__axis_medians(mkc_mag_t *g, int count, mkc_real *med)
+{
+    mkc_real *w = g->core.ebuf;
+    int j, k;
+    for (j = 0; j < 3; j++) {
+        for (k = 0; k < count; k++)
+            w[k] = g->raw[k][j];
+        med[j] = mkc__median(w, count);
+    }
+}
+
 /* sphere_fit, then refit without the samples whose |m - b| - F exceeds 3 robust scales (bursts),
  * twice at most. The first fit already leaves out the samples whose distance to the coordinate-wise
  * median is more than 3 robust scales from the median distance (gross spikes). */
 int mkc__robust_sphere_fit(mkc_mag_t *g, int count, mkc_real *b, mkc_real *F)
 {
     sel all, first;
-    int pass, k, j, nfirst;
-    mkc_real *tmp = g->core.ebuf;
+    int pass, nfirst;
     mkc_real cm[3];
     all.use_mask = 0;
-    for (j = 0; j < 3; j++) {
-        for (k = 0; k < count; k++)
-            tmp[k] = g->raw[k][j];
-        cm[j] = mkc__median(tmp, count);
-    }
+    mkc__axis_medians(g, count, cm);
     nfirst = distance_selection(g, count, cm, RC(0.0), &first);
     if (!sphere_fit(g, count, (first.use_mask && nfirst >= 8) ? &first : &all, b, F))
         return 0;
