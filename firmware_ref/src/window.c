@@ -603,6 +603,20 @@ mkc_ereal mkc__window_objective(mkc_core_t *c)
     return total;
 }
 
+/* The mean square of channel i's residuals at theta, summed in mkc_acc; the residuals into ebuf. */
+static mkc_acc mean_square_residual(mkc_core_t *c, int i)
+{
+    int s, count = (int)c->counters.count;
+    mkc_real buf[MKC_N];
+    mkc_acc acc = AC(0.0);
+    for (s = 0; s < count; s++) {
+        mkc_real r = residual_at(c, s, i, c->theta, buf);
+        c->ebuf[s] = r;
+        acc += (mkc_acc)r * (mkc_acc)r;
+    }
+    return acc / (mkc_acc)count;
+}
+
 /* First solve once min_samples are in: WLS (sigma = inf) on the window, then Algorithm 1. */
 static int initialise_window(mkc_core_t *c)
 {
@@ -638,14 +652,8 @@ static int initialise_window(mkc_core_t *c)
     }
     /* d unset (<= 0): start from the RMS of the WLS residuals; the first E-step refines it */
     for (i = 0; i < m; i++) {
-        if (!(c->d[i] > RC(0.0))) {
-            mkc_acc acc = AC(0.0);
-            for (s = 0; s < count; s++) {
-                mkc_real r = residual_at(c, s, i, c->theta, buf);
-                acc += (mkc_acc)r * (mkc_acc)r;
-            }
-            c->d[i] = (mkc_real)mkc__max_a(MKC_SQRT_A(acc / (mkc_acc)count), AC(MKC_TINY_ACC));
-        }
+        if (!(c->d[i] > RC(0.0)))
+            c->d[i] = (mkc_real)mkc__max_a(MKC_SQRT_A(mean_square_residual(c, i)), AC(MKC_TINY_ACC));
     }
     return mkc__rebuild(c);
 }
@@ -671,26 +679,20 @@ int mkc__restart_at(mkc_core_t *c, const mkc_real *theta0)
     int n = c->cfg.n, m = c->cfg.m;
     int count = (int)c->counters.count;
     int i, j, s;
-    mkc_real buf[MKC_N];
     mkc__count(&c->counters.restarts);
     for (j = 0; j < n; j++)
         c->theta[j] = theta0[j];
     for (i = 0; i < m; i++) {
-        mkc_acc acc = AC(0.0);
+        mkc_acc ms;
         mkc_real med, mad;
         c->sigma[i] = RC(MKC_START_SIGMA_ROBUST);
         forget_curvature(c, i);
-        for (s = 0; s < count; s++) {
-            mkc_real r = residual_at(c, s, i, c->theta, buf);
-            c->ebuf[s] = r;
-            acc += (mkc_acc)r * (mkc_acc)r;
-        }
+        ms = mean_square_residual(c, i);
         med = mkc__median(c->ebuf, count);
         for (s = 0; s < count; s++)
             c->ebuf[s] = (mkc_real)MKC_FABS_R(c->ebuf[s] - med);
         mad = RC(1.4826) * mkc__median(c->ebuf, count);
-        c->d[i] = (mkc_real)mkc__max_a(mad > RC(0.0) ? (mkc_acc)mad : MKC_SQRT_A(acc / (mkc_acc)count),
-                                       AC(MKC_TINY_ACC));
+        c->d[i] = (mkc_real)mkc__max_a(mad > RC(0.0) ? (mkc_acc)mad : MKC_SQRT_A(ms), AC(MKC_TINY_ACC));
     }
     return mkc__rebuild(c);
 }
