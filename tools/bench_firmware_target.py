@@ -88,6 +88,14 @@ def build(build_dir: pathlib.Path | None = None, targets: tuple[str, ...] = ("me
         raise MeasureError(f"make {' '.join(targets)} failed:\n{proc.stdout[-3000:]}{proc.stderr[-3000:]}")
 
 
+def footprint_targets(build_dir: pathlib.Path | None, board: str, precisions) -> tuple[str, ...]:
+    """The make targets of the footprint programs, named as the Makefile names them: under
+    BUILD=build_dir when given, else relative to firmware_ref/ (its default BUILD is `build`; an
+    absolute path there names no rule, and make then reports nothing to do or fails)."""
+    root = str(build_dir) if build_dir is not None else "build"
+    return tuple(f"{root}/qemu/{board}_{kind}_{p}.elf" for p in precisions for kind in ("footprint", "footprint_base"))
+
+
 def write_input(name: str, path: pathlib.Path, samples: int = 0, estep_every: int = 0) -> int:
     """Golden vector `name`'s stored input as the harness's mkc_in.bin (first `samples`, 0: all), with
     the vector's configuration (estep_every > 0: that E-step period K instead). Returns the samples
@@ -399,8 +407,7 @@ def flash_main(args) -> int:
     build_dir = args.build.resolve() if args.build else None
     bdir = build_dir or FW.FIRMWARE_DIR / "build"
     try:
-        build(build_dir, tuple(f"{bdir}/qemu/{args.board}_{kind}_{p}.elf"
-                               for p in args.precisions for kind in ("footprint", "footprint_base")))
+        build(build_dir, footprint_targets(build_dir, args.board, args.precisions))
         rows = [{"board": args.board, "core": CORES[args.board], "precision": p, **flash_added(bdir, args.board, p)}
                 for p in args.precisions]
     except MeasureError as exc:
