@@ -16,9 +16,12 @@ not see it.
    ``MAX_EFFECTS`` are kept.
    A stochastic effect that could mimic any slow deterministic one (random walk, coloured noise)
    pays the log of how much it widens the replicas (Dawid-Sebastiani), counts only when it closes
-   the gap to its null level (or ``CATCH_ALL_CLOSE`` of it), beats a deterministic effect only
+   the gap to its null level (or ``CATCH_ALL_CLOSE`` of it, or full closure is inside its shrink's
+   bootstrap interval), beats a deterministic effect only
    when it closes ``STOCHASTIC_MARGIN`` more, significantly, and is considered in the first round
-   only (after a deterministic effect, what is left is reported, not mopped up).
+   only (after a deterministic effect, what is left is reported, not mopped up). It is
+   implausible when the magnetometer lags the gyroscope (``LAG_ALPHA``): a noise independent of
+   the motion cannot make it lag.
 3. Ambiguity: an effect whose gap is not significantly above the first selected one's (paired
    bootstrap), or is itself at the null level, is reported as indistinguishable
    (``ambiguous_with``); cross_axis and misalignment have the same observable and are always
@@ -38,6 +41,7 @@ from dataclasses import dataclass, field
 from types import SimpleNamespace
 
 import numpy as np
+from scipy import stats
 
 from ..sim.effects import EFFECTS
 from . import gap
@@ -54,6 +58,8 @@ PAY_CONFIDENCE = 0.9            # bootstrap confidence that an added effect lowe
 TIE_FRACTION = 0.9              # candidates closing at least this fraction of the best one's step may tie
 STOCHASTIC_MARGIN = 0.15        # a catch-all stochastic effect must close this much more than the best
                                 # deterministic one
+LAG_ALPHA = 1e-3                # one-sided level of the gyroscope timing test above which a catch-all
+                                # is implausible (see Attribution.lag_reason)
 
 
 @dataclass
@@ -129,13 +135,32 @@ class Attribution:
                 continue
             ev = self.eng.evaluate(cand, R=R)
             out[name] = (cand, ev, gap.shrink(g_ref, ev.G))
-            why = implausible(name, self.term_magnitude(ev, name)) or self.eng.limit_reason(cand, name)
+            why = (implausible(name, self.term_magnitude(ev, name)) or self.eng.limit_reason(cand, name)
+                   or self.lag_reason(name))
             if why:
                 self.bad[name] = why
             else:
                 self.bad.pop(name, None)
             self.log(f"    {name:24s} gap {ev.G:8.3f}  shrink {out[name][2]:+.2f}{'  (implausible)' if why else ''}")
         return out
+
+    def lag_reason(self, name):
+        """Why a catch-all cannot explain this recording, or None.
+
+        A random walk or coloured noise in the hard iron is independent of the motion, so it
+        cannot make the magnetometer's rotation lag the gyroscope's (:mod:`.gyro_timing`:
+        r = dB/dt + w x B regressed on dw/dt x B). A hysteresis or a latency does. When the
+        timing test reads the magnetometer late beyond chance (one-sided p < LAG_ALPHA), a
+        catch-all that widens the replicas until the gap closes is hiding that lag.
+        """
+        g = getattr(self.matched, "gyro", None)
+        if name not in CATCH_ALL or g is None or not g["t"] > 0:
+            return None
+        if float(stats.t.sf(g["t"], g["dof"])) >= LAG_ALPHA:
+            return None
+        return (f"the magnetometer lags the gyroscope by {g['delay_ms']:.2f} +- {g['se_ms']:.2f} ms "
+                f"(t {g['t']:.1f}), which a noise independent of the motion cannot produce: not taken as "
+                "the explanation (a hysteresis or a latency can lag)")
 
     def term_magnitude(self, ev, name):
         """Magnitude of a mean effect as fitted in ev (None for estimated effects)."""
@@ -317,10 +342,10 @@ class Attribution:
                 self._set_single(results[n], full[n])
         dets = self._simplest_equivalent([n for n in full if n not in CATCH_ALL], full)
         # a catch-all stochastic effect is an explanation only when it makes the replicas
-        # indistinguishable from the recording (gap at its null level, or nearly all of it
-        # closed); closing part of a gap by widening the replicas says nothing about its cause
-        stos = [n for n in full if n in CATCH_ALL
-                and (full[n].G <= self.thr or gap.shrink(current.G, full[n].G) >= CATCH_ALL_CLOSE)]
+        # indistinguishable from the recording (gap at its null level, nearly all of it closed,
+        # or full closure within its interval); closing part of a gap by widening the replicas
+        # says nothing about its cause
+        stos = [n for n in full if n in CATCH_ALL and self._closes_all(current, full[n], results[n])]
         best_det = dets[0] if dets else None
         best_sto = self._simplest_equivalent(stos, full)[0] if stos else None
         if best_sto == "colored_noise" and "bias_random_walk" in stos and self._walk_like(full[best_sto]):
@@ -335,6 +360,16 @@ class Attribution:
             if s_sto >= s_det + STOCHASTIC_MARGIN and np.percentile(diff, 5) > 0:
                 return best_sto, full[best_sto]
         return best_det, full[best_det]
+
+    def _closes_all(self, ref, ev, r):
+        """A catch-all makes the replicas indistinguishable from the recording: its gap is at
+        the null level, it closes ``CATCH_ALL_CLOSE`` of the excess, or full closure lies inside
+        its shrink's 90% bootstrap interval (r.shrink_ci, set in the first round, the only one
+        catch-alls compete in). A fixed fraction alone would be a bar the resampling noise of a
+        short recording decides."""
+        if ev.G <= self.thr or gap.shrink(ref.G, ev.G) >= CATCH_ALL_CLOSE:
+            return True
+        return r.shrink_ci is not None and r.shrink_ci[1] >= 1.0
 
     def _walk_like(self, ev):
         """A coloured noise whose components all have correlation times longer than the

@@ -1,0 +1,75 @@
+"""When a catch-all noise model (random walk, coloured noise) counts as an explanation (decision 0027).
+
+It widens the replicas, so it can mimic any slow effect; it counts only when it makes the replicas
+indistinguishable from the recording. On short recordings a fixed bar of 0.95 of the excess gap
+is decided by resampling noise: a random walk closing 0.94, with full closure inside its 90%
+bootstrap interval, was passed over for three slow offsets that together closed 0.84 (the
+independent simulator's trials 20 and 37). A catch-all whose interval stops short of full closure
+must still not count.
+
+A noise in the hard iron is independent of the motion: it cannot make the magnetometer lag the
+gyroscope. A hysteresis does, and coloured noise closing a hysteresis's gap was named instead of it.
+"""
+from types import SimpleNamespace
+
+from mkc_stream.diagnose.attribution import CATCH_ALL_CLOSE, Attribution
+from mkc_stream.diagnose.gap import shrink
+
+
+def _attribution(alarm):
+    att = Attribution.__new__(Attribution)     # only the alarm level is read
+    att.thr = alarm
+    return att
+
+
+def _closes_all(gap_before, gap_after, interval, alarm=1.26):
+    return _attribution(alarm)._closes_all(SimpleNamespace(G=gap_before), SimpleNamespace(G=gap_after),
+                                           SimpleNamespace(shrink_ci=interval))
+
+
+def test_full_closure_inside_the_interval_counts():
+    assert shrink(9.55, 1.48) < CATCH_ALL_CLOSE            # the walk's own shrink is below the bar
+    assert _closes_all(9.55, 1.48, [0.82, 1.017])
+
+
+def test_an_interval_short_of_full_closure_does_not_count():
+    # coloured noise on a coloured-noise trial: 0.94 [0.87, 0.98], gap 1.55 against alarm 1.20
+    assert not _closes_all(9.93, 1.55, [0.867, 0.980], alarm=1.20)
+    # a random walk on a recording whose hard-iron step was removed from the library
+    assert not _closes_all(10.11, 1.62, [0.828, 0.995])
+    assert not _closes_all(9.55, 1.48, None)               # no interval (too few finite resamples)
+
+
+def test_the_earlier_criteria_still_count():
+    assert _closes_all(9.55, 1.2, None)                     # gap at its null level
+    assert _closes_all(9.55, 9.55 - 0.96 * 8.55, [0.5, 0.9], alarm=1.0)  # closes 0.96 of the excess
+
+
+# -- a lag against the gyroscope ------------------------------------------------------------------
+# The timing test's figures (gyro_timing.gyro_delay) seen on the benchmarks: hysteresis trials read
+# the magnetometer late at t 3.9-44 (31 degrees of freedom); random-walk and coloured-noise trials
+# at |t| <= 2.3.
+
+def _with_gyro(t, dof=31, delay_ms=2.9):
+    att = _attribution(1.2)
+    gyro = None if t is None else {"t": t, "dof": dof, "delay_ms": delay_ms, "se_ms": delay_ms / abs(t)}
+    att.matched = SimpleNamespace(gyro=gyro)
+    return att
+
+
+def test_a_catch_all_is_implausible_when_the_magnetometer_lags_the_gyroscope():
+    for name in ("colored_noise", "bias_random_walk"):
+        why = _with_gyro(14.0).lag_reason(name)
+        assert why is not None and "lags the gyroscope by 2.90" in why and "t 14.0" in why
+    assert _with_gyro(3.9).lag_reason("colored_noise") is not None      # the weakest hysteresis seen
+
+
+def test_no_lag_no_veto():
+    assert _with_gyro(1.2).lag_reason("colored_noise") is None           # noise trials: |t| <= 2.3
+    assert _with_gyro(2.3).lag_reason("bias_random_walk") is None
+    assert _with_gyro(-14.0).lag_reason("colored_noise") is None         # the gyroscope late: not the magnetometer
+    assert _with_gyro(None).lag_reason("colored_noise") is None          # no gyroscope, or not testable
+    assert _with_gyro(14.0).lag_reason("hysteresis") is None             # only catch-alls are independent of motion
+    att = _attribution(1.2)
+    att.matched = None                                                   # no matched tests at all
+    assert att.lag_reason("colored_noise") is None
