@@ -15,6 +15,7 @@ from types import SimpleNamespace
 from mkc_stream.diagnose import diagnose
 from mkc_stream.diagnose.attribution import CATCH_ALL_CLOSE, Attribution
 from mkc_stream.diagnose.gap import shrink
+from mkc_stream.diagnose.report import text
 from mkc_stream.sim import SensorModel, generate, simulate
 
 
@@ -91,3 +92,8 @@ def test_a_simulated_hysteresis_keeps_the_catch_alls_out():
     for name in ("colored_noise", "bias_random_walk"):
         assert r[name].status == "implausible" and "lags the gyroscope" in r[name].reason, (name, r[name].status)
         assert name not in d.ambiguous_with
+    # the human report says why, once for both
+    report = text(d)
+    assert "implausible, because:" in report
+    assert "bias_random_walk, colored_noise: the magnetometer lags the gyroscope" in report \
+        or "colored_noise, bias_random_walk: the magnetometer lags the gyroscope" in report

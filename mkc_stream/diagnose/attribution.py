@@ -77,6 +77,7 @@ class EffectResult:
     evaluation: Evaluation | None = field(default=None, repr=False)
     verified: bool = False
     shrink_given_selected: float | None = None
+    why_implausible: str | None = None      # the screen's reason, also appended to ``reason``
 
 
 def _resample(rng, blocks, B, n):
@@ -188,6 +189,7 @@ class Attribution:
         for name, why in first_bad.items():
             results[name].status = "implausible"
             results[name].reason += "; " + why
+            results[name].why_implausible = why
         singles = {}
         for name in testable:
             cand, ev_s, s = screened[name]

@@ -199,6 +199,11 @@ def text(diag, source="") -> str:
                 lo, hi = r.magnitude_ci["value"]
                 mag += f" [{_fmt(lo)}, {_fmt(hi)}]"
         L.append(f"    {r.name:24s} {r.status:13s} {_fmt(r.shrink, 2):>7s} {ci:>15s}  {mag}")
+    bad = [(r.name, r.why_implausible) for r in diag.effects if r.status == "implausible" and r.why_implausible]
+    if bad:
+        L.append("  implausible, because:")
+        for why, names in _grouped(bad):
+            L.append(f"    {', '.join(names)}: {why}")
     nt = [r for r in diag.effects if not r.testable]
     off = (info.get("scope") or {}).get("statistics_not_testable") or {}
     if nt or off:
