@@ -152,3 +152,20 @@ def test_blind_end_to_end_on_the_independent_simulator(tmp_path):
         assert key in S
     assert S["trials"] == 1 and S["false_alarm_rate"] == 0.0
     assert score["rows"][0]["verdict"] == "no_gap"
+
+
+def test_a_latency_trial_whose_form_closes_the_gap_is_named():
+    """The independent simulator's trial 43 of seed 2: an 11.3 ms first-order output lag at 20 Hz.
+    Its form measures it (11.3 ms) and closes the held-out gap below the alarm; the trial ended
+    `unexplained` while the gap index read the E-step's log sigma, which stops anywhere on its
+    flat ridge: the screen's 16 replicas put it at 1.5-2.3 and the recording at 5.2, and the
+    latency looked harmful (decision 0028)."""
+    from mkc_stream.diagnose import diagnose
+
+    rec, label = blind_indep.make_indep_trial("single", "latency", 200049, blind_benchmark)
+    assert label["magnitude"]["value"] == pytest.approx(11.33, abs=0.01)
+    d = diagnose(rec, profile="fast", seed=0)
+    assert d.selected[:1] == ["latency"] and d.verdict == "explained", (d.verdict, d.selected)
+    assert d.gap_after <= d.threshold
+    lat = next(e for e in d.effects if e.name == "latency")
+    assert lat.magnitude["value"] == pytest.approx(label["magnitude"]["value"], rel=0.1)

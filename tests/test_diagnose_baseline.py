@@ -48,7 +48,7 @@ def _rejected():
 def test_a_rejected_calibration_leaves_only_the_calibration_free_statistics_and_effects():
     scope = _rejected()
     assert "coverage" in scope.rejection.failed
-    for fam in ("distribution/norm", "aux:current/norm", "time/dip", "kernel", "quartic/norm"):
+    for fam in ("distribution/norm", "aux:current/norm", "time/dip", "changes/norm", "quartic/norm"):
         why = scope.family_reason(fam)
         assert why is not None and "sphere coverage 22% < 50%" in why
     for fam in CALIBRATION_FREE_FAMILIES:

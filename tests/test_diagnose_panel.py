@@ -159,12 +159,12 @@ def test_a_panel_for_several_weightings_is_each_weighting_s_panel(sample):
     s = block_sums.block_stats(d, e, valid, raw)
     rng = np.random.default_rng(4)
     mults = rng.integers(0, 3, size=(3, d.n_blocks)).astype(float)
-    p = panel.evaluate(d, s, mults, kernel=False)
+    p = panel.evaluate(d, s, mults)
     v, w, f = p.matrices()
     np.testing.assert_array_equal(p.values(), v)
     assert v.shape == w.shape == f.shape == (3, len(p.labels)) and len(p.family) == len(p.labels)
     for m in range(3):
-        one = panel.evaluate(d, s, mults[m], kernel=False)
+        one = panel.evaluate(d, s, mults[m])
         x1, w1, f1 = one.arrays()
         np.testing.assert_allclose(v[m], x1, rtol=1e-12, atol=1e-12, equal_nan=True)
         np.testing.assert_allclose(w[m], w1, rtol=1e-12, atol=1e-12, equal_nan=True)
@@ -173,6 +173,22 @@ def test_a_panel_for_several_weightings_is_each_weighting_s_panel(sample):
     # a block left out by a weighting weighs 0 in the time family, whose weights are per block
     time = np.array([fam == "time" for fam in p.family])
     np.testing.assert_array_equal(w[:, time], np.tile(np.repeat(mults, 6, axis=1), (1, d.C)))
+
+
+def test_the_bootstrap_reads_the_statistics_the_gap_index_reads(engine):
+    """A bootstrap resample that keeps every block once gives the point gap index: every
+    statistic is a function of the block sums (decision 0028). The panel once held the E-step's
+    (sigma, d), which the bootstraps left out; the selection then compared point gaps that read
+    it with bootstrap gains that did not."""
+    from mkc_stream.diagnose import gap
+    from mkc_stream.diagnose.engine import Candidate
+
+    ev = engine.evaluate(Candidate())
+    gap.threshold(engine.calibrate(ev))
+    p = panel.evaluate(engine.design, ev.real_bs, engine.all_mult)
+    assert "kernel" not in set(p.family)
+    ones = np.ones((2, engine.frame.n_blocks))
+    np.testing.assert_allclose(engine.boot_gaps(ev, ones), ev.G, rtol=1e-9)
 
 
 def test_replicas_share_their_recorded_sums_and_score_as_if_recomputed(engine):

@@ -516,8 +516,7 @@ class Attribution:
 
 def centred_interval(point, boot, level=0.9):
     """Basic bootstrap interval around the point estimate: its spread from the resamples, its
-    centre from the estimate (the resamples' own statistics, e.g. without the kernel family, need
-    not be centred on it)."""
+    centre from the estimate (the resamples' own statistics need not be centred on it)."""
     lo, med, hi = np.percentile(boot, [50 * (1 - level), 50, 50 * (1 + level)])
     return [float(point + lo - med), float(point + hi - med)]
 

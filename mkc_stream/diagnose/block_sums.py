@@ -122,7 +122,6 @@ def block_stats(d: PanelDesign, e, valid, raw, clock_t=None, recorded=None) -> d
         s["qe"], s["qq"] = Wq[:, :3], Wq[:, 3:]
     _spectral(d, s, zi, inl)
     s.update(recorded_stats(d, raw, clock_t) if recorded is None else recorded)
-    s["e_norm"] = [z[sl, 0][valid[sl, 0]] for sl in d.slices]
     return s
 
 

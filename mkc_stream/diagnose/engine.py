@@ -390,8 +390,8 @@ class Engine:
         """Gap index of ev for each block weighting in mults (M, B): the real recording and every
         replica are re-aggregated over the same resampled blocks (a consistent bootstrap)."""
         d = self.design
-        x, w, fl = panel.evaluate(d, ev.real_bs, mults, kernel=False).matrices()
-        reps = np.stack([panel.evaluate(d, bs, mults, kernel=False).values() for bs in ev.rep_bs])
+        x, w, fl = panel.evaluate(d, ev.real_bs, mults).matrices()
+        reps = np.stack([panel.evaluate(d, bs, mults).values() for bs in ev.rep_bs])
         pen = self._penalty(ev, ev.rep_values)
         out = np.empty(mults.shape[0])
         for m in range(mults.shape[0]):

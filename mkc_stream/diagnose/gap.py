@@ -53,7 +53,7 @@ def zscores(x, reps, floors):
 
 def family_key(family, channel):
     """The gap index's family name of a statistic: "sphere/norm", "aux:temp/dip", "raw" ..."""
-    return family if family in ("kernel", "timing", "raw") else f"{family}/{channel}"
+    return family if family in ("timing", "raw") else f"{family}/{channel}"
 
 
 class GapIndex:

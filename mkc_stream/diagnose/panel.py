@@ -7,7 +7,6 @@ samples again. Families (``where`` in the JSON):
 
 * ``distribution`` per channel: mean, RMS over high-frequency noise, IQR, tails beyond 3 and 5
   sigma, quantile skewness and kurtosis;
-* ``kernel``: the MKC E-step's (sigma, d) fitted to the norm residual (the paper's kernel);
 * ``sphere``: mean residual in 18 equal-area direction cells;
 * ``time``: per block, the residual regressed on [1, v, vx^2 - 1/3, vy^2 - 1/3] (v the calibrated
   direction): the block's apparent offset, hard-iron change and soft-iron change;
@@ -162,18 +161,6 @@ def _quantiles(h, qs):
     return [val[..., i] for i in range(len(qs))]
 
 
-def _kernel(z):
-    from ..kernels.estep import estep_channel
-
-    if z.size < 50:
-        return np.nan, np.nan
-    a = 1.5 * float(np.max(np.abs(z)))
-    H = np.zeros(3)
-    sig, dd, _, _, _ = estep_channel(np.ascontiguousarray(z), z.size, a, 2.0, 1.0, 0.05, 1000.0, 1e-6 * a, a,
-                                     60, 1e-7, 0.0, H)
-    return np.log(sig), np.log(dd)
-
-
 class Panel:
     """Values (M, K), weights (M, K), floors (M, K), families and labels of a panel evaluated for
     M block weightings at once (M = 1 for one weighting). Floors, weights and labels are built
@@ -244,9 +231,12 @@ def _labels(d: PanelDesign) -> dict:
     return d._lab
 
 
-def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> Panel:
+def evaluate(d: PanelDesign, s: dict, mult: np.ndarray) -> Panel:
     """The panel over blocks weighted by ``mult`` (B,) or (M, B) (1 = use once, 0 = leave out).
-    kernel=False leaves the (costlier) kernel statistics undefined (bootstraps)."""
+    Every statistic is a function of the block sums, so a bootstrap's resample reads the same
+    statistics as the point estimate. (The MKC E-step's (sigma, d) of the norm residual is not
+    one: once the tails are Gaussian its likelihood is flat in sigma and the E-step stops
+    anywhere on the ridge; see docs/decisions/0028.)"""
     mult = np.atleast_2d(np.asarray(mult, dtype=np.float64))
     M = mult.shape[0]
     p = Panel(M)
@@ -278,14 +268,6 @@ def evaluate(d: PanelDesign, s: dict, mult: np.ndarray, kernel: bool = True) -> 
               (q[5][:, c] + q[1][:, c] - 2 * q[3][:, c]) / np.maximum(q[5][:, c] - q[1][:, c], 1e-9), 1e-3)
         p.add("distribution", ch[c], "kurtosis (quantile)",
               (q[6][:, c] - q[0][:, c]) / np.maximum(q[4][:, c] - q[2][:, c], 1e-9), 1e-3)
-    # kernel
-    ks = np.full((M, 2), np.nan)
-    for m in range(M if kernel else 0):
-        reps = np.round(mult[m]).astype(int)
-        zk = [np.tile(x, k) for x, k in zip(s["e_norm"], reps) if k > 0]
-        ks[m] = _kernel(np.concatenate(zk) if zk else np.zeros(0))
-    p.add("kernel", "norm", "log sigma", ks[:, 0], 0.02)
-    p.add("kernel", "norm", "log d", ks[:, 1], 0.02)
     # sphere
     cn, cs = aggc(s["cell_n"]), aggc(s["cell_s"])        # (M, C, K)
     for c in range(C):
