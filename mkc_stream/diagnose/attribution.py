@@ -8,12 +8,14 @@ not see it.
    fewer replicas.
 2. Select greedily: the best few candidates are re-scored with all replicas. Among
    deterministic candidates that the bootstrap cannot rank (and that close at least
-   ``TIE_FRACTION`` of the best one's step), the simplest wins (fewest parameters and grid
-   settings). The choice is kept if it pays for its parameters: it closes at least ``MIN_STEP``
-   of the remaining excess gap and lowers the gap with ``PAY_CONFIDENCE`` in a block bootstrap
-   (real recording and replicas resampled alike). The next round adds each remaining effect to
-   the kept ones (refitted jointly), until the gap is at its null level, nothing pays, or
-   ``MAX_EFFECTS`` are kept.
+   ``TIE_FRACTION`` of the best one's step), those whose term removes less than
+   ``TIE_FRACTION`` of the fired matched evidence the best of them removes are not tied
+   (:meth:`Attribution._matched_equivalent`, decision 0029); of the rest the simplest wins
+   (fewest parameters and grid settings). The choice is kept if it pays for its parameters:
+   it closes at least ``MIN_STEP`` of the remaining excess gap and lowers the gap with
+   ``PAY_CONFIDENCE`` in a block bootstrap (real recording and replicas resampled alike). The
+   next round adds each remaining effect to the kept ones (refitted jointly), until the gap is
+   at its null level, nothing pays, or ``MAX_EFFECTS`` are kept.
    A stochastic effect that could mimic any slow deterministic one (random walk, coloured noise)
    pays the log of how much it widens the replicas (Dawid-Sebastiani), counts only when it closes
    the gap to its null level (or ``CATCH_ALL_CLOSE`` of it, or full closure is inside its shrink's
@@ -216,7 +218,7 @@ class Attribution:
             scores = {n: results[n].shrink for n in remaining}
             rnd = 0
             while remaining and len(selected) < MAX_EFFECTS:
-                best = self._round(rnd, current, remaining, scores, singles, results)
+                best = self._round(rnd, current, remaining, scores, singles, results, tuple(selected))
                 if best is None:
                     break
                 name, ev_best = best
@@ -314,7 +316,7 @@ class Attribution:
                  f"{', nothing left' if closed else ''}); ambiguous with {', '.join(ambiguous) or '-'}")
         return selected, final, ambiguous
 
-    def _round(self, rnd, current, remaining, scores, singles, results):
+    def _round(self, rnd, current, remaining, scores, singles, results, given=()):
         """Best candidate of a selection round, re-scored with all replicas.
 
         Deterministic effects first; a catch-all stochastic effect (random walk, coloured noise)
@@ -342,7 +344,7 @@ class Attribution:
             self.log(f"  round {rnd + 1}: {n:24s} gap {full[n].G:.3f} (all replicas)")
             if rnd == 0:
                 self._set_single(results[n], full[n])
-        dets = self._simplest_equivalent([n for n in full if n not in CATCH_ALL], full)
+        dets = self._simplest_equivalent([n for n in full if n not in CATCH_ALL], full, given)
         # a catch-all stochastic effect is an explanation only when it makes the replicas
         # indistinguishable from the recording (gap at its null level, nearly all of it closed,
         # or full closure within its interval); closing part of a gap by widening the replicas
@@ -384,10 +386,11 @@ class Attribution:
     def _step(self, full, name):
         return gap.shrink(self._round_ref.G, full[name].G)
 
-    def _simplest_equivalent(self, names, full):
+    def _simplest_equivalent(self, names, full, given=()):
         """Candidates ordered best first, where "best" is the simplest (fewest parameters and
         settings to choose from) among those whose gap is not significantly above the lowest
-        one (paired bootstrap): Occam between explanations the data cannot rank."""
+        one (paired bootstrap) and that explain as much of the fired matched evidence
+        (:meth:`_matched_equivalent`): Occam between explanations the data cannot rank."""
         if len(names) < 2:
             return names
         lead = min(names, key=lambda n: full[n].G)
@@ -395,8 +398,50 @@ class Attribution:
         s_lead = self._step(full, lead)
         tied = [n for n in names if n == lead or (self._step(full, n) >= TIE_FRACTION * s_lead
                                                   and np.percentile(self.boot_gaps(full[n]) - gl, 5) <= 0)]
+        if len(tied) > 1:
+            tied = self._matched_equivalent(tied, given)
         pick = min(tied, key=lambda n: (complexity(n, full[n].cand, self.eng.env), full[n].G))
         return [pick] + sorted([n for n in names if n != pick], key=lambda n: full[n].G)
+
+    def _matched_equivalent(self, names, given=()):
+        """Of candidates the held-out gap cannot rank, those the matched tests cannot rank
+        either: each removes at least TIE_FRACTION of the fired matched evidence the best of
+        them removes (the same measure and fraction as :meth:`_run_matched`), given the effects
+        already selected. The held-out gap is an omnibus over hundreds of statistics; a matched
+        test reads one form's pattern directly (a thermal offset under a temperature ramp
+        against a drift: the ramp's bends), so where it fired it can separate what the gap
+        ties. Candidates without a matched test (noise, clock and mask effects) stay tied; with
+        no fired evidence, or a selected effect the tests cannot condition on, nothing changes.
+
+        removed(n) = (D(E | given) - D(E | given + n)) / (D(E | given) - NULL_LEVEL |E|),
+        D the sum of max(t, 0)^2 over the tests E that fire given the selected effects."""
+        mt = self.matched
+        if mt is None:
+            return names
+
+        def test_of(n):
+            return n if n in mt.names else FORMS[n].alias_of if FORMS[n].alias_of in mt.names else None
+
+        cond = tuple(test_of(n) for n in given)
+        if None in cond:
+            return names
+        evidence = mt.fired(given=cond)
+        d_given = mt.discrepancy(evidence, cond)
+        excess = d_given - NULL_LEVEL * len(evidence)
+        if not evidence or not excess > 0:
+            return names
+        removed = {n: (d_given - mt.discrepancy(evidence, cond + (test_of(n),))) / excess
+                   for n in names if test_of(n) is not None}
+        best = max(removed.values(), default=0.0)
+        if not best > 0:
+            return names
+        keep = [n for n in names if n not in removed or removed[n] >= TIE_FRACTION * best]
+        dropped = [n for n in names if n not in keep]
+        if dropped:
+            self.log("  the matched evidence ranks what the gap ties: removed " +
+                     ", ".join(f"{n} {removed[n]:.2f}" for n in names if n in removed) +
+                     f"; not tied: {', '.join(dropped)}")
+        return keep
 
     def _set_single(self, r, ev):
         r.shrink, r.gap, r.evaluation, r.verified = gap.shrink(self.ev0.G, ev.G), ev.G, ev, True
