@@ -154,6 +154,7 @@ def test_blind_end_to_end_on_the_independent_simulator(tmp_path):
     assert score["rows"][0]["verdict"] == "no_gap"
 
 
+@pytest.mark.slow  # ~25 s; CI keeps the latency form with test_diagnose.py's filtering-latency test
 def test_a_latency_trial_whose_form_closes_the_gap_is_named():
     """The independent simulator's trial 43 of seed 2: an 11.3 ms first-order output lag at 20 Hz.
     Its form measures it (11.3 ms) and closes the held-out gap below the alarm; the trial ended

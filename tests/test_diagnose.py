@@ -264,6 +264,7 @@ def test_strong_coloured_noise_is_named_with_its_amplitude(trajectory):
     assert r.magnitude["value"] == pytest.approx(0.25, rel=0.25)
 
 
+@pytest.mark.slow  # ~30 s; CI keeps the coloured-noise route with the strong single component above
 def test_two_time_scale_coloured_noise_is_found_with_both_components(trajectory):
     """Coloured noise with a fast (1 s) and a slow (60 s) Gauss-Markov component, 0.1 uT each
     against 0.1 uT of white noise: coloured noise is named, closes the gap, and its fit holds two
@@ -282,6 +283,7 @@ def test_two_time_scale_coloured_noise_is_found_with_both_components(trajectory)
     assert r.magnitude["value"] == pytest.approx(np.hypot(0.1, 0.1), rel=0.3)
 
 
+@pytest.mark.slow  # ~27 s; CI keeps the coloured-noise route with the strong single component above
 def test_flicker_like_coloured_noise_is_named():
     """A flicker-like noise as the blind benchmark injects it: three Gauss-Markov components at
     0.5, 5 and 30 s, 0.09 uT each, against 0.1 uT of white noise, over 500 s. Coloured noise is
@@ -298,6 +300,7 @@ def test_flicker_like_coloured_noise_is_named():
     assert r.magnitude["value"] == pytest.approx(0.09 * np.sqrt(3), rel=0.3)
 
 
+@pytest.mark.slow  # ~28 s; CI keeps the current's route in test_diagnose_attitude.py and the blind subset
 def test_throttle_standing_in_for_a_removed_current_effect_is_only_partial(trajectory):
     """A weak current hard iron (0.02 uT/A) with the current's own effect removed from the
     library: the throttle law absorbs the part of the current that follows the throttle and
