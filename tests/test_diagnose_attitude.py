@@ -51,8 +51,9 @@ def test_current_effect_found_and_sized(with_current):
     h = e.held_out
     assert h["variance_explained"] > 0.5         # the current dominates the held-out residual
     assert all(a < b for a, b in zip(h["rms_after"], h["rms_before"]))
-    js = e.to_json()        # the delay (true 30 ms) is weakly determined by a smooth current: a value or a note
-    assert (js["delay_s"] is not None and 0.0 <= js["delay_s"] < 0.1) or "not determined" in js["delay_note"]
+    js = e.to_json()        # the delay, true 30 ms, searched over -500..500 ms: measured 29 ms [15, 43]
+    lo, hi = js["delay_ci95_s"]
+    assert js["delay_s"] == pytest.approx(0.03, abs=0.015) and lo <= 0.03 <= hi and hi - lo < 0.1
     # the baseline knows no current: its residual carries it
     assert ad.baseline["usable"] and len(ad.baseline["residual_rms"]) == 3
     assert ad.baseline["skipped"] == 0 and ad.baseline["samples"] == len(with_current.recording)
@@ -141,15 +142,21 @@ def test_diagnose_carries_the_section(with_current):
 def test_log171_internal_compass_follows_the_current():
     """dronekit's log171 (243 s, 10 Hz): the internal compasses MAG2 and MAG3 follow the current
     (flightcal's joint fit: z 0.36 and 1.00 uT/A), found on the attitude-aided residual, sized, and
-    explaining most of the held-out residual; the external MAG barely (<= 0.05 uT/A)."""
+    explaining most of the held-out residual; the external MAG barely (<= 0.05 uT/A). Both internal
+    compasses see the current about 220 ms before the log does (measured -218 and -222 ms, intervals
+    about +-25 ms): the logged current is late, and read on time it explains 77% of the held-out
+    residual (70% at 0-100 ms, where the delay search used to stop)."""
     from mkc_stream.ingest.flightlogs import read_flight_log
 
     for inst in (1, 2):                              # MAG2, MAG3: the internal compasses
         ad = diagnose_attitude(read_flight_log(f"{LOG171}#instance={inst}"))
         assert ad.ran, ad.reason
         e = ad.test("current_hard_iron")
-        assert e.found and e.held_out["variance_explained"] > 0.5
+        assert e.found and e.held_out["variance_explained"] > 0.75
         assert abs(e.size["value"][2]) > 0.25 and e.size["ci95"][2][0] > 0.25     # uT/A, z: 0.36 / 1.0
+        lo, hi = e.label["delay_ci95_s"]
+        assert -0.3 < lo < e.label["delay_s"] < hi < -0.15                       # s
+        assert "the logged current is" in "\n".join(attitude_lines(ad.to_json()))
     external = diagnose_attitude(read_flight_log(f"{LOG171}#instance=0")).test("current_hard_iron")
     assert np.max(np.abs(external.size["value"])) < 0.1                          # uT/A
     assert external.held_out["variance_explained"] < 0.05

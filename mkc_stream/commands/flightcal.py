@@ -124,7 +124,10 @@ def report_lines(fc, unit, rejection) -> list:
     if fc.throttle is not None:
         lines.append(f"  throttle      : {fmt_vec(fc.throttle, unit)} at full throttle")
     if fc.delay_s is not None:
-        lines.append(f"  delay         : {fc.delay_s * 1e3:.1f} ms (power signal to magnetometer)")
+        ci = "" if fc.delay_ci_s is None else f", 95% [{fc.delay_ci_s[0] * 1e3:+.0f}, {fc.delay_ci_s[1] * 1e3:+.0f}]"
+        lines.append(f"  delay         : {fc.delay_s * 1e3:+.1f} ms{ci} (" + (
+            "the magnetometer sees the power signal this late)" if fc.delay_s >= 0
+            else "the logged power signal is this late: a filtered or late-logged sensor)"))
     lines.append(f"  misalignment  : {fmt_vec(fc.misalignment_deg, 'deg')} (rotation vector, sensor to attitude frame; "
                  "not in the calibration)")
     if fc.fit.tilt_sd_deg:

@@ -36,7 +36,8 @@ bandwidth. The parametric alternative (W read against F(3p, G - 3p), G = 16 clus
 p_value_wald_f) was too liberal: on 30 null flights of tools/study_attitude_diagnosis.py it found the
 throttle 3 times and the current once at the 1% level, one of them a stretch where the baseline's yaw
 term ran off (52 deg) and the current, stepping at the same time, "explained" 92% of the held-out residual.
-The delay and the lag are chosen on the training blocks (least Huber objective) and tested at that choice;
+The delay and the lag are chosen on the training blocks (least Huber objective, every candidate at the scale
+of the fit without the effect) and tested at that choice;
 the held-out check guards against it.
 """
 from __future__ import annotations
@@ -48,8 +49,11 @@ import numpy as np
 
 #: Huber's tuning constant, in robust standard deviations (95% efficiency for Gaussian errors)
 HUBER_K = 1.345
-#: delays (s) of the current tried: the magnetometer sees the current this late (vector_fit's range)
-CURRENT_DELAYS = tuple(np.round(np.arange(0.0, 0.1001, 0.01), 3))
+#: delays (s) of the current tried: the magnetometer sees the current this late, or (negative) the
+#: logged current is the late one (a filtered or late-logged sensor); vector_fit's range, a coarser step
+CURRENT_DELAYS = tuple(np.round(np.arange(-0.5, 0.5001, 0.02), 3))
+#: a delay whose 95% interval reaches further than this each side (s) is not reported (delay_interval)
+DELAY_DETERMINED = 0.1
 #: first-order thermal lags (s) of the die behind the temperature column (thermal.py's grid)
 THERMAL_LAGS = (0.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
 #: time shifts of the circular shift test (module doc): the smallest p it can give is 1 / (SHIFTS + 1)
@@ -174,7 +178,8 @@ def candidates(name, aux, t, duration):
 class StackedFit:
     theta: np.ndarray        # (3 + q,): the channels' intercepts, then the effect's coefficients
     infl: np.ndarray         # (N_train, 3 + q): influence of each training sample (its three channels) on theta
-    objective: float
+    objective: float         # the Huber objective at the fit's own scale (not comparable across models)
+    s: float = 1.0           # that scale, in units of the channels' robust sds
 
 
 def robust_scales(r) -> np.ndarray:
@@ -200,7 +205,15 @@ def stacked_fit(r, Z, scale) -> StackedFit:
     theta, s, psi, dpsi = huber_fit(ys, Zs)
     B = (Zs * dpsi[:, None]).T @ Zs
     infl = (s * (Zs * psi[:, None]) @ np.linalg.pinv(B).T).reshape(n, 3, -1).sum(axis=1)
-    return StackedFit(theta, infl, huber_objective(ys, Zs, theta, s))
+    return StackedFit(theta, infl, huber_objective(ys, Zs, theta, s), s)
+
+
+def objective_at(r, Z, scale, theta, s) -> float:
+    """The Huber objective of theta on the stacked channels (as stacked_fit divides them) at the given scale
+    s: models compare on it only at a common s (a worse fit has a larger scale of its own, which would
+    shrink its objective)."""
+    n = r.shape[0]
+    return huber_objective((r / scale[None, :]).reshape(-1), (Z / scale[None, :, None]).reshape(3 * n, -1), theta, s)
 
 
 def held_out_ss(r, train, Z, scale) -> float:
@@ -233,6 +246,24 @@ class EffectTest:
                 "size": self.size, "held_out": self.held_out, **self.label}
 
 
+def _delay_label(label, e, se, G):
+    """The chosen delay with its 95% interval (t, G - 1 degrees of freedom), or None with the reason: at an
+    end of the search, or an interval wider than DELAY_DETERMINED (s) each side."""
+    from scipy.stats import t as student
+
+    q = float(student.ppf(0.975, G - 1))
+    lo, hi = CURRENT_DELAYS[0], CURRENT_DELAYS[-1]
+    tau = label["delay_s"]
+    if tau in (lo, hi):
+        label.update(delay_s=None, delay_note=f"at the end of the search ({lo * 1e3:g} to {hi * 1e3:g} ms): "
+                                              "not determined by this recording")
+    elif not (math.isfinite(e) and q * se <= DELAY_DETERMINED):
+        label.update(delay_s=None, delay_note=f"not determined by this recording (95% interval +-{q * se * 1e3:.0f} "
+                                              f"ms about {tau * 1e3:.0f} ms: the current moves too slowly)")
+    else:
+        label.update(delay_s=tau + e, delay_ci95_s=[tau + e - q * se, tau + e + q * se])
+
+
 def _size(name, K, V, G, unit):
     """Per-axis size and 95% interval (t with G-1 degrees of freedom) in the library's units."""
     from scipy.stats import t as student
@@ -258,6 +289,35 @@ def _size(name, K, V, G, unit):
     if name == "throttle_hard_iron":
         out["meaning"] = "offset at full throttle against zero throttle"
     return out
+
+
+def _cluster_cov(fit, idx, G, first) -> np.ndarray:
+    """Cluster-robust covariance (module doc) of the coefficients first.. of a stacked fit, idx (n_train,)
+    the training block of each row."""
+    S = np.stack([np.bincount(idx, fit.infl[:, j], G) for j in range(first, fit.infl.shape[1])], 1)
+    return S.T @ S * G / max(G - 1, 1)
+
+
+def delay_interval(t, u, r, train, idx, G, proj, scale):
+    """(correction, standard error) in s of the current's delay at the chosen grid point, by linearising
+    the delayed column about it: K_i c(t - tau - e) ~ K_i u - e K_i du/dt, so the model with the columns
+    u and du/dt per axis has the coefficients K_i and g_i = -e K_i; e = -(K . g) / (K . K), its
+    variance by the delta method from the cluster-robust covariance of (K, g). A smooth current (a
+    flat profile in the delay) gives a wide interval: the grid's choice is then not a measurement."""
+    du = np.gradient(u[:, 0], t)[:, None] if t.shape[0] > 2 else np.zeros_like(u)
+    fit = stacked_fit(r[train], design(proj.perp(np.concatenate([u, du], axis=1)))[train], scale)
+    V = _cluster_cov(fit, idx, G, 3)
+    c = fit.theta[3:].reshape(3, 2)                 # [K_i, g_i] per sensor axis i
+    K, g = c[:, 0], c[:, 1]
+    kk = float(K @ K)
+    if not kk > 0:
+        return math.nan, math.inf
+    e = -float(K @ g) / kk
+    grad = np.zeros((3, 2))
+    grad[:, 0] = -g / kk + 2.0 * float(K @ g) * K / kk ** 2
+    grad[:, 1] = -K / kk
+    grad = grad.reshape(-1)
+    return e, math.sqrt(max(float(grad @ V @ grad), 0.0))
 
 
 def _cluster_wald(r, Z, w, idx, G, first) -> float:
@@ -305,21 +365,22 @@ def run_effect_test(name, aux, t, duration, r, train, block, proj, unit, level) 
     bridged = int((~np.isfinite(aux[col])).sum())
     test = ~train
     scale = robust_scales(r[train])
+    s0 = stacked_fit(r[train], design(np.zeros((r.shape[0], 3, 3, 0)))[train], scale).s   # the common scale
     best = None
     for c in cands:
         Up = proj.perp(c.u)
         Z = design(Up)
         f = stacked_fit(r[train], Z[train], scale)
-        if best is None or f.objective < best[0]:
-            best = (f.objective, c, Up, Z, f)
+        obj = objective_at(r[train], Z[train], scale, f.theta, s0)
+        if best is None or obj < best[0]:
+            best = (obj, c, Up, Z, f)
     _, cand, Up, Z, fit = best
     p = cand.u.shape[1]
     # cluster-robust covariance of the effect's coefficients over the three channels (module doc)
     blocks = np.unique(block[train])
     G = blocks.size
     idx = np.searchsorted(blocks, block[train])
-    S = np.stack([np.bincount(idx, fit.infl[:, j], G) for j in range(3, 3 + 3 * p)], 1)
-    V = S.T @ S * G / max(G - 1, 1)
+    V = _cluster_cov(fit, idx, G, 3)
     K = fit.theta[3:].reshape(3, p)
     k = K.reshape(-1)
     try:
@@ -341,9 +402,8 @@ def run_effect_test(name, aux, t, duration, r, train, block, proj, unit, level) 
             "variance_explained": share, "samples": int(test.sum())}
     found = bool(math.isfinite(pval) and pval < level and share > 0)
     label = dict(cand.label)
-    if "delay_s" in label and found and label["delay_s"] >= CURRENT_DELAYS[-1]:
-        label.update(delay_s=None, delay_note=f"at the end of the search (0-{CURRENT_DELAYS[-1] * 1e3:g} ms): "
-                                              "not determined by this recording")
+    if "delay_s" in label and found:
+        _delay_label(label, *delay_interval(t, cand.u, r, train, idx, G, proj, scale), G)
     elif "delay_s" in label and not found:
         label["delay_s"] = None              # no effect: no delay to speak of
     size = _size(name, K, V, G, unit)

@@ -102,8 +102,11 @@ def attitude_lines(att) -> list:
         ci = ", ".join(f"{_fmt(v)} [{_fmt(lo)}, {_fmt(hi)}]" for v, (lo, hi) in zip(sz["value"], sz["ci95"]))
         extra = ""
         if "delay_s" in e:
-            extra = "; delay " + (e.get("delay_note") or "not determined" if e["delay_s"] is None
-                                  else f"{e['delay_s'] * 1e3:.0f} ms")
+            d = e["delay_s"]
+            extra = "; delay " + (e.get("delay_note") or "not determined" if d is None
+                                  else f"{d * 1e3:.0f} ms (the magnetometer sees the current this late)" if d >= 0
+                                  else f"{d * 1e3:.0f} ms (the logged current is {-d * 1e3:.0f} ms late: "
+                                       "a filtered or late-logged sensor)")
         if "lag_s" in e:
             extra = f"; thermal lag {e['lag_s']:g} s"
         L.append(f"    {'':20s} size {ci} {sz['unit']} (x, y, z; 95%){extra}")

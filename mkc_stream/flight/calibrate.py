@@ -15,7 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validation import MKCInputError
-from .vector_fit import VectorFit, VectorFitSettings, fit_vector
+from .vector_fit import VectorFit, VectorFitSettings, delay_standard_error, fit_vector
+
+#: a fitted delay whose 95% interval reaches further than this each side (s) is not reported
+DELAY_DETERMINED = 0.1
 
 QUAT = ("qw", "qx", "qy", "qz")
 #: A fitted field strength this far from the model's (relative) is flagged: in a flight log in uT
@@ -50,6 +53,7 @@ class FlightCalibration:
     skipped: int                       # rows without a finite attitude / signal, left out
     fit: VectorFit
     notes: list
+    delay_ci_s: tuple | None = None    # 95% interval of the searched delay (delay_standard_error), None if not
 
     @property
     def yaw_error_rms_deg(self) -> float | None:
@@ -149,7 +153,7 @@ def earth_reference(rec, earth, lat, lon, alt, date, notes: list):
 
 
 def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power=None,
-               robust=True, yaw_only=False, delay=None, max_delay=0.1, max_vif=None,
+               robust=True, yaw_only=False, delay=None, max_delay=0.5, max_vif=None,
                tilt_sd_deg="auto") -> FlightCalibration:
     """Attitude-aided calibration of ``rec`` (module doc).
 
@@ -158,7 +162,7 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     the recording's meta "date" or "start_time" when given there, else today, noted). power: aux
     columns used as power signals when present (None: the current when present, else the
     throttle; both are usually nearly collinear, current = f(throttle)). delay: a fixed delay (s) instead of the search over
-    [0, max_delay]. max_vif: observability threshold (vector_fit.MAX_VIF). tilt_sd_deg: the attitude's
+    [-max_delay, max_delay] (negative: the logged signal is the late one, vector_fit's module doc). max_vif: observability threshold (vector_fit.MAX_VIF). tilt_sd_deg: the attitude's
     roll/pitch error (deg, 1 sd), corrected for in the fit (vector_fit's module doc): a stated value,
     "auto" (estimated from the fit's residuals, tilt_error.py) or None (not corrected)."""
     from .vector_fit import MAX_VIF
@@ -202,10 +206,18 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     if delay_s is not None and ci is not None and throttle_free(names, f) and np.all((ci[:, 0] <= 0) & (ci[:, 1] >= 0)):
         delay_s = None
         notes.append("no current coefficient differs from 0 at 95%: the delay is not determined and not reported")
-    elif delay_s is not None and max_delay and delay is None and delay_s >= 0.99 * max_delay:
+    elif delay_s is not None and max_delay and delay is None and abs(delay_s) >= 0.99 * max_delay:
         delay_s = None
-        notes.append(f"the delay ran to the end of the search ({max_delay * 1e3:g} ms): not determined by this log "
+        notes.append(f"the delay ran to the end of the search (+-{max_delay * 1e3:g} ms): not determined by this log "
                      "(a weak or slow current signal), not reported")
+    delay_ci = None
+    if delay_s is not None and delay is None and max_delay:
+        half = 1.96 * delay_standard_error(rec.t[ok], c[ok], f)
+        delay_ci = (delay_s - half, delay_s + half)
+        if not half <= DELAY_DETERMINED:
+            notes.append(f"the delay's 95% interval is +-{half * 1e3:.0f} ms about {delay_s * 1e3:.0f} ms (the power "
+                         f"signal moves too slowly to time it): not determined, not reported")
+            delay_s = delay_ci = None
     if "A02=A20" in f.held and "A22=(A00+A11)/2" not in f.held:
         notes.append(f"the responses of x and y to the vertical field held symmetric (A02=A20, A12=A21): the "
                      f"flight tilts little (VIF of h_z {f.vif['h_z']:.3g}); a tilt misalignment of the sensor goes "
@@ -230,4 +242,4 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     return FlightCalibration(hard_iron=f.b, soft_iron=S, field=field, scale=scale, misalignment_deg=mis,
                              current=cur, throttle=thr, delay_s=delay_s, current_ci=ci, earth=ef, held=f.held,
                              observable=f.observable, vif=f.vif, unit=unit, samples=int(ok.sum()), skipped=skipped,
-                             fit=f, notes=notes)
+                             fit=f, notes=notes, delay_ci_s=delay_ci)

@@ -149,7 +149,8 @@ def plot_flight_report(rec, fc, path, title="") -> dict:
             ax.plot(xs, k[i] * xs, "-", color=f"C{i}", lw=1.8, label=f"{axis}: {k[i]:+.4f} {u}/"
                     + ("A" if a["power_name"] == "current" else "unit"))
         unit = "A" if a["power_name"] == "current" else "0..1"
-        ax.set_xlabel(f"{a['power_name']} at t - {a['power_delay_s'] * 1e3:.0f} ms ({unit})")
+        dl = a["power_delay_s"]
+        ax.set_xlabel(f"{a['power_name']} at t {'-' if dl >= 0 else '+'} {abs(dl) * 1e3:.0f} ms ({unit})")
         ax.set_ylabel(f"residual + fitted compensation ({u})")
         good = pr[a["weight_min"] >= DISTURBED_WEIGHT]
         if good.size:                      # the trusted samples set the scale; disturbed ones (grey) may lie outside

@@ -7,7 +7,9 @@ with an estimated inclination), A = S_phys^-1 a general 3x3 matrix (soft iron, s
 counts per uT, and a constant rotation between the magnetometer and the attitude frame: a mounting
 misalignment, or a constant heading offset of the attitude, which in level flight is the same thing),
 b the hard iron, K (3 x n_c) the interference per unit of the power signals c (current in A,
-throttle 0..1), tau their delay (the magnetometer sees the signal tau seconds late).
+throttle 0..1), tau their delay: the magnetometer sees the signal tau seconds late; a negative tau
+means the logged signal is the late one (a filtered or late-logged current sensor: dronekit's log171
+reads its current about 0.2 s after the compasses see it).
 
 The attitude's wandering yaw error enters as a nuisance term dpsi(t_k) g_k, g_k = A R_k^T (e_z x h_E),
 dpsi a piecewise-linear function of time with a Gaussian prior (yaw_error.py has its derivation);
@@ -51,8 +53,8 @@ they are not quite (a sample with a large u gets a smaller weight), so it over-c
 in tests/test_flight_tilt_error.py with a white 2 deg error: b_z off by 2.76 uT without, -0.58 with).
 
 Scalars profiled by a 1-D search (each point an M-step at the current (sigma, d), the objective J
-compared): tau on a grid of DELAY_STEP over [0, max_delay] refined by a parabola through the best
-point and its neighbours; the inclination (when h_E is not given) on a grid of 1 deg refined the
+compared): tau on a grid of DELAY_COARSE over [-max_delay, max_delay], then on a grid of DELAY_STEP
+around the coarse grid's best point, refined by a parabola through the best point and its neighbours; the inclination (when h_E is not given) on a grid of 1 deg refined the
 same way; the EM then runs at the optimum.
 
 Observability: the weighted normal matrix is blockdiag(X^T C_i X); the information a column j of
@@ -103,7 +105,9 @@ PROFILE_ITER = 10
 #: The EM's trimmed start (_trimmed_start): concentration steps and the fraction of samples kept.
 START_CSTEPS = 4
 START_KEEP = 0.5
-#: Grid step of the delay search, s; refined by a parabola through the best point and its neighbours.
+#: Grid steps of the delay search, s: a coarse pass over the whole range, then a fine one around its
+#: best point, refined by a parabola through the best point and its neighbours.
+DELAY_COARSE = 0.025
 DELAY_STEP = 0.005
 #: Blocks of this duration (s) form the cluster-robust covariance of the parameters (residuals of
 #: a flight are correlated over seconds: attitude error, gusts); see parameter_covariance.
@@ -324,7 +328,7 @@ class VectorFitSettings:
     max_vif: float = MAX_VIF
     max_vif_tilt: float = MAX_VIF_TILT
     yaw_only: bool = False
-    max_delay: float = 0.1          # s; None or 0: no delay search
+    max_delay: float = 0.5          # s; the search covers [-max_delay, max_delay]; None or 0: none
     delay: float | None = None      # s; a fixed delay instead of the search
     yaw_knot_s: float | None = 10.0  # s; knot spacing of the yaw-error nuisance (None: no yaw error modelled)
     yaw_prior_deg: float = 5.0       # prior sd of the yaw error, deg
@@ -416,6 +420,16 @@ def _trimmed_start(P, z, robust_scale):
     return z
 
 
+def _delay_search(max_delay, evaluate):
+    """The delay search (module doc): (tau, [(tau, J)] over both passes, sorted), |tau| <= max_delay."""
+    coarse = _profile(np.arange(-max_delay, max_delay + 1e-9, DELAY_COARSE), evaluate)[1]
+    centre = min(coarse, key=lambda p: p[1])[0]
+    fine = np.arange(centre - DELAY_COARSE, centre + DELAY_COARSE + 1e-9, DELAY_STEP)
+    fine = fine[np.abs(fine) <= max_delay + 1e-9]
+    tau, prof = _profile(fine, evaluate)
+    return min(max(tau, -max_delay), max_delay), sorted(dict(coarse + prof).items())
+
+
 def _profile(values, evaluate):
     """Minimise evaluate(v) over the grid values, refined by a parabola: (best, [(v, J)])."""
     J = np.array([evaluate(v) for v in values])
@@ -427,6 +441,26 @@ def _profile(values, evaluate):
         if den > 0:
             best = float(values[k] + 0.5 * (j0 - j2) / den * (values[1] - values[0]))
     return best, list(zip(map(float, values), map(float, J)))
+
+
+def delay_standard_error(t, c, fit, block_s=COVARIANCE_BLOCK_S) -> float:
+    """Cluster-robust standard error (s) of the fitted delay, by linearising the power term about it:
+    K c(t - tau - e) ~ K c(t - tau) - e D, D_k = K dc/dt(t_k - tau), so e is the weighted regression of
+    the residuals E on -D (weights C = w / d^2, the final kernel's), with a sandwich over time blocks
+    of block_s seconds as parameter_covariance's. D is taken as orthogonal to the other regressors (a
+    stationary signal and its rate are uncorrelated). A smooth power signal (a flat objective in the
+    delay) gives a large error: the search's choice is then not a measurement. nan without power terms."""
+    if c.shape[1] == 0 or fit.delay_s is None or t.shape[0] < 3:
+        return math.nan
+    D = np.gradient(delayed(t, c, fit.delay_s), t, axis=0) @ np.asarray(fit.K).T
+    C = fit.weights / (np.asarray(fit.d) ** 2)[None, :] if np.all(np.isfinite(fit.sigma)) else np.ones_like(D)
+    den = float(np.sum(C * D * D))
+    if not den > 0:
+        return math.inf
+    blk = np.floor((t - t[0]) / block_s).astype(np.int64)
+    score = np.bincount(blk, np.sum(C * D * fit.residuals, axis=1))
+    G = score.size
+    return math.sqrt(float(np.sum(score ** 2)) * G / max(G - 1, 1)) / den
 
 
 def parameter_covariance(P, z, C, t, block_s=COVARIANCE_BLOCK_S):
@@ -533,8 +567,7 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
             zt, _, _ = _mstep(Pt, z, sigma, d, PROFILE_ITER, s.tol)
             E = _residuals(Pt, zt)
             return _objective(E, sigma, d) if s.robust else 0.5 * float(np.sum(E * E))
-        tau, delay_profile = _profile(np.arange(0.0, s.max_delay + 1e-9, DELAY_STEP), J_tau)
-        tau = min(max(tau, 0.0), s.max_delay)
+        tau, delay_profile = _delay_search(s.max_delay, J_tau)
         P = problem(h, tau)
         z, sigma, d, r2, converged = _fit_at(P, s, z, sigma.copy(), d.copy())
         rounds += r2
