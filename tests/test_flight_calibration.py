@@ -257,3 +257,23 @@ def test_a_delay_the_current_cannot_time_is_not_reported():
     assert c.fit.delay_s is not None                     # the search's own result, kept in the fit
     assert c.delay_s is None and c.delay_ci_s is None
     assert any("95% interval" in n and "not determined" in n for n in c.notes)
+
+
+def test_repeated_timestamps_leave_the_delay_interval_finite():
+    """A log whose clock repeats a stamp (allowed: time is non-decreasing) has no rate there: the
+    delay's interval skips those rows instead of dividing by zero, in the fit and in the diagnosis."""
+    from mkc_stream.diagnose.attitude import diagnose_attitude
+    from mkc_stream.io.recording import Recording
+
+    f = simulated_flight(duration=120.0, seed=3)
+    t = f.recording.t.copy()
+    t[200:260] = t[200]
+    t[1000:1003] = t[1000]
+    rec = Recording(t=t, mag=f.recording.mag, aux=f.recording.aux, meta=dict(f.recording.meta))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        warnings.simplefilter("error", RuntimeWarning)          # a division by zero would raise here
+        c = fit_flight(rec, earth=f.truth["h_ned"])
+        e = diagnose_attitude(rec, earth=f.truth["h_ned"]).test("current_hard_iron")
+    for lo, hi in (c.delay_ci_s, e.label["delay_ci95_s"]):
+        assert lo <= 0.03 <= hi and hi - lo < 0.1                              # s; true 30 ms

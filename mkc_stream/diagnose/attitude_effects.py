@@ -178,8 +178,7 @@ def candidates(name, aux, t, duration):
 class StackedFit:
     theta: np.ndarray        # (3 + q,): the channels' intercepts, then the effect's coefficients
     infl: np.ndarray         # (N_train, 3 + q): influence of each training sample (its three channels) on theta
-    objective: float         # the Huber objective at the fit's own scale (not comparable across models)
-    s: float = 1.0           # that scale, in units of the channels' robust sds
+    s: float                 # the fit's Huber scale, in units of the channels' robust sds
 
 
 def robust_scales(r) -> np.ndarray:
@@ -205,7 +204,7 @@ def stacked_fit(r, Z, scale) -> StackedFit:
     theta, s, psi, dpsi = huber_fit(ys, Zs)
     B = (Zs * dpsi[:, None]).T @ Zs
     infl = (s * (Zs * psi[:, None]) @ np.linalg.pinv(B).T).reshape(n, 3, -1).sum(axis=1)
-    return StackedFit(theta, infl, huber_objective(ys, Zs, theta, s), s)
+    return StackedFit(theta, infl, s)
 
 
 def objective_at(r, Z, scale, theta, s) -> float:
@@ -304,7 +303,9 @@ def delay_interval(t, u, r, train, idx, G, proj, scale):
     u and du/dt per axis has the coefficients K_i and g_i = -e K_i; e = -(K . g) / (K . K), its
     variance by the delta method from the cluster-robust covariance of (K, g). A smooth current (a
     flat profile in the delay) gives a wide interval: the grid's choice is then not a measurement."""
-    du = np.gradient(u[:, 0], t)[:, None] if t.shape[0] > 2 else np.zeros_like(u)
+    with np.errstate(divide="ignore", invalid="ignore"):       # repeated timestamps: no rate there
+        du = np.gradient(u[:, 0], t)[:, None] if t.shape[0] > 2 else np.zeros_like(u)
+    du = np.nan_to_num(du, nan=0.0, posinf=0.0, neginf=0.0)
     fit = stacked_fit(r[train], design(proj.perp(np.concatenate([u, du], axis=1)))[train], scale)
     V = _cluster_cov(fit, idx, G, 3)
     c = fit.theta[3:].reshape(3, 2)                 # [K_i, g_i] per sensor axis i

@@ -161,10 +161,11 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
     (deg, deg, m): the position when the log has none; date: for WMM2025 (decimal year, date or ISO;
     the recording's meta "date" or "start_time" when given there, else today, noted). power: aux
     columns used as power signals when present (None: the current when present, else the
-    throttle; both are usually nearly collinear, current = f(throttle)). delay: a fixed delay (s) instead of the search over
-    [-max_delay, max_delay] (negative: the logged signal is the late one, vector_fit's module doc). max_vif: observability threshold (vector_fit.MAX_VIF). tilt_sd_deg: the attitude's
-    roll/pitch error (deg, 1 sd), corrected for in the fit (vector_fit's module doc): a stated value,
-    "auto" (estimated from the fit's residuals, tilt_error.py) or None (not corrected)."""
+    throttle; both are usually nearly collinear, current = f(throttle)). delay: a fixed delay (s) instead of the
+    search over [-max_delay, max_delay] (negative: the logged signal is the late one, vector_fit's module doc).
+    max_vif: observability threshold (vector_fit.MAX_VIF). tilt_sd_deg: the attitude's roll/pitch error
+    (deg, 1 sd), corrected for in the fit (vector_fit's module doc): a stated value, "auto" (estimated
+    from the fit's residuals, tilt_error.py) or None (not corrected)."""
     from .vector_fit import MAX_VIF
 
     notes = []

@@ -54,8 +54,9 @@ in tests/test_flight_tilt_error.py with a white 2 deg error: b_z off by 2.76 uT 
 
 Scalars profiled by a 1-D search (each point an M-step at the current (sigma, d), the objective J
 compared): tau on a grid of DELAY_COARSE over [-max_delay, max_delay], then on a grid of DELAY_STEP
-around the coarse grid's best point, refined by a parabola through the best point and its neighbours; the inclination (when h_E is not given) on a grid of 1 deg refined the
-same way; the EM then runs at the optimum.
+around the coarse grid's best point, refined by a parabola through the best point and its
+neighbours (its interval: delay_standard_error); the inclination (when h_E is not given) on a grid
+of 1 deg refined the same way; the EM then runs at the optimum.
 
 Observability: the weighted normal matrix is blockdiag(X^T C_i X); the information a column j of
 X carries independently of the others is measured by its variance inflation factor
@@ -452,7 +453,9 @@ def delay_standard_error(t, c, fit, block_s=COVARIANCE_BLOCK_S) -> float:
     delay) gives a large error: the search's choice is then not a measurement. nan without power terms."""
     if c.shape[1] == 0 or fit.delay_s is None or t.shape[0] < 3:
         return math.nan
-    D = np.gradient(delayed(t, c, fit.delay_s), t, axis=0) @ np.asarray(fit.K).T
+    with np.errstate(divide="ignore", invalid="ignore"):       # repeated timestamps: no rate there
+        dc = np.gradient(delayed(t, c, fit.delay_s), t, axis=0)
+    D = np.nan_to_num(dc, nan=0.0, posinf=0.0, neginf=0.0) @ np.asarray(fit.K).T
     C = fit.weights / (np.asarray(fit.d) ** 2)[None, :] if np.all(np.isfinite(fit.sigma)) else np.ones_like(D)
     den = float(np.sum(C * D * D))
     if not den > 0:
