@@ -151,7 +151,7 @@ class Candidate:
 def candidates(name, aux, t, duration):
     """The column sets tried for an effect (module doc), or (None, reason) when the recording cannot test it."""
     from ..sim.effects.base import first_order_lag
-    from ..flight.vector_fit import delayed
+    from ..flight.delay import delayed
 
     col = COLUMN[name]
     if col not in aux:

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validation import MKCInputError
-from .vector_fit import VectorFit, VectorFitSettings, delay_standard_error, fit_vector
+from .delay import delay_standard_error
+from .vector_fit import COVARIANCE_BLOCK_S, VectorFit, VectorFitSettings, fit_vector
 
 #: a fitted delay whose 95% interval reaches further than this each side (s) is not reported
 DELAY_DETERMINED = 0.1
@@ -213,7 +214,7 @@ def fit_flight(rec, *, earth=None, lat=None, lon=None, alt=0.0, date=None, power
                      "(a weak or slow current signal), not reported")
     delay_ci = None
     if delay_s is not None and delay is None and max_delay:
-        half = 1.96 * delay_standard_error(rec.t[ok], c[ok], f)
+        half = 1.96 * delay_standard_error(rec.t[ok], c[ok], f, COVARIANCE_BLOCK_S)
         delay_ci = (delay_s - half, delay_s + half)
         if not half <= DELAY_DETERMINED:
             notes.append(f"the delay's 95% interval is +-{half * 1e3:.0f} ms about {delay_s * 1e3:.0f} ms (the power "

@@ -18,7 +18,8 @@ import math
 
 import numpy as np
 
-from .vector_fit import delayed, rotation_matrices
+from .delay import delayed
+from .vector_fit import rotation_matrices
 
 QUAT = ("qw", "qx", "qy", "qz")
 #: heading RMS (deg) against the other compasses above which one can be named inconsistent

@@ -55,7 +55,8 @@ def _power_column(fc):
 def report_arrays(rec, fc) -> dict:
     """The arrays of the four panels (module doc); units in the keys."""
     from .compare import navigation_field
-    from .vector_fit import delayed, rotation_matrices
+    from .delay import delayed
+    from .vector_fit import rotation_matrices
 
     ok = fitted_rows(rec, fc)
     gain = fc.scale if math.isfinite(fc.scale) and fc.scale > 0 else 1.0

@@ -53,10 +53,10 @@ they are not quite (a sample with a large u gets a smaller weight), so it over-c
 in tests/test_flight_tilt_error.py with a white 2 deg error: b_z off by 2.76 uT without, -0.58 with).
 
 Scalars profiled by a 1-D search (each point an M-step at the current (sigma, d), the objective J
-compared): tau on a grid of DELAY_COARSE over [-max_delay, max_delay], then on a grid of DELAY_STEP
+compared): tau on a grid of delay.DELAY_COARSE over [-max_delay, max_delay], then of delay.DELAY_STEP
 around the coarse grid's best point, refined by a parabola through the best point and its
-neighbours (its interval: delay_standard_error); the inclination (when h_E is not given) on a grid
-of 1 deg refined the same way; the EM then runs at the optimum.
+neighbours (delay.search_delay; its interval: delay.delay_standard_error); the inclination (when
+h_E is not given) on a grid of 1 deg refined the same way; the EM then runs at the optimum.
 
 Observability: the weighted normal matrix is blockdiag(X^T C_i X); the information a column j of
 X carries independently of the others is measured by its variance inflation factor
@@ -80,6 +80,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._validation import MKCInputError
+from .delay import delayed, profile_search, search_delay
 
 #: A regressor column whose variance inflation exceeds this is held at its prior (module doc).
 #: Measured on simulated flights (tools/study_flight.py): truly level flight with yaw gives VIF_hz
@@ -106,10 +107,6 @@ PROFILE_ITER = 10
 #: The EM's trimmed start (_trimmed_start): concentration steps and the fraction of samples kept.
 START_CSTEPS = 4
 START_KEEP = 0.5
-#: Grid steps of the delay search, s: a coarse pass over the whole range, then a fine one around its
-#: best point, refined by a parabola through the best point and its neighbours.
-DELAY_COARSE = 0.025
-DELAY_STEP = 0.005
 #: Blocks of this duration (s) form the cluster-robust covariance of the parameters (residuals of
 #: a flight are correlated over seconds: attitude error, gusts); see parameter_covariance.
 COVARIANCE_BLOCK_S = 10.0
@@ -136,13 +133,6 @@ def rotation_matrices(q) -> np.ndarray:
 def body_field(R, h_ned) -> np.ndarray:
     """h_k = R_k^T h_ned, (N, 3)."""
     return np.einsum("kji,j->ki", R, np.asarray(h_ned, dtype=np.float64))
-
-
-def delayed(t, c, tau) -> np.ndarray:
-    """c(t_k - tau) by linear interpolation (held at the ends); c (N, n_c)."""
-    if tau == 0.0 or c.shape[1] == 0:
-        return c
-    return np.stack([np.interp(t - tau, t, c[:, j]) for j in range(c.shape[1])], axis=1)
 
 
 def _vif(X, c=None) -> np.ndarray:
@@ -421,51 +411,6 @@ def _trimmed_start(P, z, robust_scale):
     return z
 
 
-def _delay_search(max_delay, evaluate):
-    """The delay search (module doc): (tau, [(tau, J)] over both passes, sorted), |tau| <= max_delay."""
-    coarse = _profile(np.arange(-max_delay, max_delay + 1e-9, DELAY_COARSE), evaluate)[1]
-    centre = min(coarse, key=lambda p: p[1])[0]
-    fine = np.arange(centre - DELAY_COARSE, centre + DELAY_COARSE + 1e-9, DELAY_STEP)
-    fine = fine[np.abs(fine) <= max_delay + 1e-9]
-    tau, prof = _profile(fine, evaluate)
-    return min(max(tau, -max_delay), max_delay), sorted(dict(coarse + prof).items())
-
-
-def _profile(values, evaluate):
-    """Minimise evaluate(v) over the grid values, refined by a parabola: (best, [(v, J)])."""
-    J = np.array([evaluate(v) for v in values])
-    k = int(np.argmin(J))
-    best = float(values[k])
-    if 0 < k < len(values) - 1:
-        j0, j1, j2 = J[k - 1], J[k], J[k + 1]
-        den = j0 - 2 * j1 + j2
-        if den > 0:
-            best = float(values[k] + 0.5 * (j0 - j2) / den * (values[1] - values[0]))
-    return best, list(zip(map(float, values), map(float, J)))
-
-
-def delay_standard_error(t, c, fit, block_s=COVARIANCE_BLOCK_S) -> float:
-    """Cluster-robust standard error (s) of the fitted delay, by linearising the power term about it:
-    K c(t - tau - e) ~ K c(t - tau) - e D, D_k = K dc/dt(t_k - tau), so e is the weighted regression of
-    the residuals E on -D (weights C = w / d^2, the final kernel's), with a sandwich over time blocks
-    of block_s seconds as parameter_covariance's. D is taken as orthogonal to the other regressors (a
-    stationary signal and its rate are uncorrelated). A smooth power signal (a flat objective in the
-    delay) gives a large error: the search's choice is then not a measurement. nan without power terms."""
-    if c.shape[1] == 0 or fit.delay_s is None or t.shape[0] < 3:
-        return math.nan
-    with np.errstate(divide="ignore", invalid="ignore"):       # repeated timestamps: no rate there
-        dc = np.gradient(delayed(t, c, fit.delay_s), t, axis=0)
-    D = np.nan_to_num(dc, nan=0.0, posinf=0.0, neginf=0.0) @ np.asarray(fit.K).T
-    C = fit.weights / (np.asarray(fit.d) ** 2)[None, :] if np.all(np.isfinite(fit.sigma)) else np.ones_like(D)
-    den = float(np.sum(C * D * D))
-    if not den > 0:
-        return math.inf
-    blk = np.floor((t - t[0]) / block_s).astype(np.int64)
-    score = np.bincount(blk, np.sum(C * D * fit.residuals, axis=1))
-    G = score.size
-    return math.sqrt(float(np.sum(score ** 2)) * G / max(G - 1, 1)) / den
-
-
 def parameter_covariance(P, z, C, t, block_s=COVARIANCE_BLOCK_S):
     """Cluster-robust (sandwich) covariance of theta: Nz^-1 M Nz^-1 with Nz the weighted normal matrix in
     (q, beta) (_normal) and M the sum over time blocks of block_s seconds of the outer products of the
@@ -554,8 +499,8 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
             zi, sg, dd, _, _ = _fit_at(Pi, VectorFitSettings(robust=s.robust, max_em_iter=2, yaw_knot_s=s.yaw_knot_s))
             E = _residuals(Pi, zi)
             return _objective(E, sg, dd) if s.robust else float(np.sum(E * E))
-        coarse, _ = _profile(np.arange(-85.0, 86.0, 5.0), J_incl)
-        inc, incl_profile = _profile(np.arange(coarse - 5.0, coarse + 5.01, 1.0), J_incl)
+        coarse, _ = profile_search(np.arange(-85.0, 86.0, 5.0), J_incl)
+        inc, incl_profile = profile_search(np.arange(coarse - 5.0, coarse + 5.01, 1.0), J_incl)
         h = np.array([math.cos(math.radians(inc)), 0.0, math.sin(math.radians(inc))])
     else:
         h = np.asarray(h_ned, dtype=np.float64)
@@ -570,7 +515,7 @@ def fit_vector(t, mag, q, h_ned=None, power=None, power_names=(), settings: Vect
             zt, _, _ = _mstep(Pt, z, sigma, d, PROFILE_ITER, s.tol)
             E = _residuals(Pt, zt)
             return _objective(E, sigma, d) if s.robust else 0.5 * float(np.sum(E * E))
-        tau, delay_profile = _delay_search(s.max_delay, J_tau)
+        tau, delay_profile = search_delay(s.max_delay, J_tau)
         P = problem(h, tau)
         z, sigma, d, r2, converged = _fit_at(P, s, z, sigma.copy(), d.copy())
         rounds += r2
