@@ -52,8 +52,6 @@ HUBER_K = 1.345
 #: delays (s) of the current tried: the magnetometer sees the current this late, or (negative) the
 #: logged current is the late one (a filtered or late-logged sensor); vector_fit's range, a coarser step
 CURRENT_DELAYS = tuple(np.round(np.arange(-0.5, 0.5001, 0.02), 3))
-#: a delay whose 95% interval reaches further than this each side (s) is not reported (delay_interval)
-DELAY_DETERMINED = 0.1
 #: first-order thermal lags (s) of the die behind the temperature column (thermal.py's grid)
 THERMAL_LAGS = (0.0, 5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0)
 #: time shifts of the circular shift test (module doc): the smallest p it can give is 1 / (SHIFTS + 1)
@@ -247,8 +245,10 @@ class EffectTest:
 
 def _delay_label(label, e, se, G):
     """The chosen delay with its 95% interval (t, G - 1 degrees of freedom), or None with the reason: at an
-    end of the search, or an interval wider than DELAY_DETERMINED (s) each side."""
+    end of the search, or an interval wider than flight.delay.DELAY_DETERMINED (s) each side."""
     from scipy.stats import t as student
+
+    from ..flight.delay import DELAY_DETERMINED
 
     q = float(student.ppf(0.975, G - 1))
     lo, hi = CURRENT_DELAYS[0], CURRENT_DELAYS[-1]

@@ -15,11 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._validation import MKCInputError
-from .delay import delay_standard_error
+from .delay import DELAY_DETERMINED, delay_standard_error
 from .vector_fit import COVARIANCE_BLOCK_S, VectorFit, VectorFitSettings, fit_vector
-
-#: a fitted delay whose 95% interval reaches further than this each side (s) is not reported
-DELAY_DETERMINED = 0.1
 
 QUAT = ("qw", "qx", "qy", "qz")
 #: A fitted field strength this far from the model's (relative) is flagged: in a flight log in uT

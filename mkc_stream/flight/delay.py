@@ -15,6 +15,9 @@ import numpy as np
 #: best point, refined by a parabola through the best point and its neighbours.
 DELAY_COARSE = 0.025
 DELAY_STEP = 0.005
+#: A delay whose 95% interval reaches further than this each side (s) is not reported, in the flight
+#: fit and in the diagnosis's current test alike.
+DELAY_DETERMINED = 0.1
 
 
 def delayed(t, c, tau) -> np.ndarray:
