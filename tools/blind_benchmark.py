@@ -12,19 +12,22 @@ Three separate steps, so the diagnoser never sees a label:
    injected with forward models that differ from the library's own forms (a two-node thermal
    RC ladder, a wire pair's Biot-Savart field, tanh compression, a play-operator hysteresis,
    a first-order filter for latency, flicker noise, exponential relaxation ...), so the test is
-   not circular.
+   not circular. Each label also carries the trial's shape shares (tools/blind_shapes.py): how
+   much of the injected change, noise-free, each wrong slow-offset form could follow.
 2. ``run``: ``diagnose`` on every recording (only the recording, plus the library restriction
    of "removed" trials, which is part of the trial's setup, not of its label), results to
    ``OUT/results``.
 3. ``score``: only now the labels are read; the acceptance figures are printed and written to
    ``OUT/score.json``.
 
+``--step shapes`` adds the shape shares to a run generated before labels carried them (each trial
+is regenerated from its seed and must match its recording on disk).
 ``--subset ci`` runs the small fixed subset that CI runs (tests/test_diagnose_blind.py).
 ``--simulator indep`` draws the trials from tools/indep_sim.py (a simulator written without
 :mod:`mkc_stream.sim`) with the same effects, magnitudes and forward models
 (tools/blind_indep.py adapts them); the default ``ours`` draws them from :mod:`mkc_stream.sim`.
 
-Size: about 670 lines; generation, the oracle and scoring share the trial's conventions (effect
+Size: about 740 lines; generation, the oracle and scoring share the trial's conventions (effect
 list, ranges, forward models, what counts as a miss), which one file keeps in step.
 """
 from __future__ import annotations
@@ -41,7 +44,10 @@ from scipy.spatial.transform import Rotation
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+if str(ROOT / "tools") not in sys.path:
+    sys.path.insert(0, str(ROOT / "tools"))
 
+from blind_shapes import SHAPE_CONFUSABLE, shape_shares  # noqa: E402
 from mkc_stream.diagnose.forms import FORMS  # noqa: E402
 from mkc_stream.sim import SensorModel, generate as make_trajectory, simulate  # noqa: E402
 from mkc_stream.sim.effects.base import first_order_lag  # noqa: E402
@@ -411,8 +417,11 @@ def make_trial(kind, effect, seed, simulator="ours"):
         effects, mag = trial_effects(kind, truth, rng, traj, sensor)
         label.update(truth=truth, magnitude=mag, pair=effect.split("|") if kind == "pair" else None)
     sim = simulate(traj, sensor, effects=[(e, {}) for e in effects], seed=seed + 1)
-    if truth in ORACLE_EFFECTS:
-        label["oracle_snr"] = oracle_snr(sim, simulate(traj, sensor, seed=seed + 1), traj, sensor)
+    if truth is not None:
+        clean = simulate(traj, sensor, seed=seed + 1)                  # the same draws, no effect
+        if truth in ORACLE_EFFECTS:
+            label["oracle_snr"] = oracle_snr(sim, clean, traj, sensor)
+        label["shape_share"] = shape_shares(sim.recording.t, sim.recording.aux, sim.mag_full - clean.mag_full)
     if label["magnitude"] and label["magnitude"].get("from_ctx"):
         label["magnitude"]["value"] = float(sim.truth[label["magnitude"].pop("from_ctx")])
     label["exclude"] = [truth] if kind == "removed" else []
@@ -473,6 +482,36 @@ def step_generate(out, plan, simulator="ours"):
         labels[name] = {**label, "seed": seed}
     (sealed / "labels.json").write_text(json.dumps(labels, indent=1))
     return sorted(labels)
+
+
+def step_shapes(out, plan, simulator="ours"):
+    """Adds each trial's shape shares (tools/blind_shapes.py) to the sealed labels of a run
+    generated before labels carried them. Each trial is regenerated from its seed and must be the
+    recording on disk (else the generator has changed since, and the run cannot be relabelled)."""
+    from mkc_stream.io.recording import read_recording
+
+    path = out / "sealed" / "labels.json"
+    labels = json.loads(path.read_text())
+    done = 0
+    for i, item in enumerate(plan):
+        if isinstance(item[1], tuple):
+            i, item = item
+        kind, effect, seed = item
+        name = f"trial{i:04d}"
+        if name not in labels:
+            continue
+        if labels[name]["seed"] != seed:
+            raise SystemExit(f"{name}: seed {labels[name]['seed']} on disk, {seed} in this plan (other --trials/--seed?)")
+        rec, label = make_trial(kind, effect, seed, simulator)
+        disk = read_recording(out / "recordings" / f"{name}.csv")
+        if disk.mag.shape != rec.mag.shape or not np.allclose(disk.mag, rec.mag, rtol=0.0, atol=1e-5):
+            raise SystemExit(f"{name}: the regenerated recording differs from the one on disk "
+                             f"(the generator changed since the run); its labels are left as they were")
+        if "shape_share" in label:
+            labels[name]["shape_share"] = label["shape_share"]
+            done += 1
+    path.write_text(json.dumps(labels, indent=1))
+    print(f"shape shares added to {done} of {len(labels)} labels in {path}")
 
 
 def _diagnose_one(args):
@@ -582,6 +621,14 @@ def step_score(out):
         row["best_wrong_unpaired_det"] = max([e["shrink"] for e in unpaired if e["name"] not in CATCH_ALL],
                                              default=None)
         row["best_wrong_det"] = max([e["shrink"] for e in wrong if e["name"] not in CATCH_ALL], default=None)
+        # the same, leaving out too the wrong forms that follow >= SHAPE_CONFUSABLE of the truth's
+        # noise-free change (tools/blind_shapes.py); None for a run generated without the shares
+        shares = lab.get("shape_share")
+        row["wrong_shape_confusable"] = sorted(n for n, v in (shares or {}).items()
+                                               if n != truth and v >= SHAPE_CONFUSABLE)
+        row["best_wrong_shape_separable_det"] = None if shares is None else max(
+            [e["shrink"] for e in unpaired if e["name"] not in CATCH_ALL
+             and shares.get(e["name"], 0.0) < SHAPE_CONFUSABLE], default=None)
         row["best_wrong_given"] = max([e.get("shrink_given_selected") or 0.0 for e in wrong], default=None)
         rows.append(row)
     S = {}
@@ -631,6 +678,11 @@ def step_score(out):
     S["best_wrong_without_declared_partner_le_0.3"] = share_le(det, "best_wrong_unpaired")
     S["best_wrong_deterministic_without_declared_partner_le_0.3"] = share_le(det, "best_wrong_unpaired_det")
     S["best_wrong_deterministic_le_0.3"] = share_le(det, "best_wrong_det")
+    S["best_wrong_deterministic_shape_separable_le_0.3"] = share_le(det, "best_wrong_shape_separable_det")
+    # the failures of the line outside the declared pair whose wrong effect shares the truth's shape
+    S["best_wrong_over_0.3_shape_confusable"] = sum(
+        1 for r in det if (r["best_wrong_unpaired_det"] or 0.0) > 0.3
+        and (r["best_wrong_shape_separable_det"] or 0.0) <= 0.3 and "shape_share" in labels[r["trial"]])
     S["best_wrong_given_selected_le_0.3"] = share_le(det, "best_wrong_given")
     pairs = [r for r in rows if r["kind"] == "pair" and r["typical"]]
     S["pair_truth_in_set"] = frac([r["truth"] in r["selected"] + r["ambiguous"] for r in pairs])
@@ -660,7 +712,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--subset", choices=("ci",), help="the fixed small subset CI runs")
-    ap.add_argument("--step", choices=("all", "generate", "run", "score"), default="all")
+    ap.add_argument("--step", choices=("all", "generate", "run", "score", "shapes"), default="all",
+                    help="shapes: add the shape shares to the labels of a run generated without them")
     ap.add_argument("--only", help="comma-separated effect names (and/or 'none'): only the plan's trials with them")
     ap.add_argument("--simulator", choices=("ours", "indep"), default="ours",
                     help="draw the trials from mkc_stream.sim (ours) or tools/indep_sim.py (indep)")
@@ -673,6 +726,8 @@ def main(argv=None):
     if a.step in ("all", "generate"):
         print(f"generating {len(plan)} recordings in {out}/recordings (labels sealed in {out}/sealed)")
         step_generate(out, plan, a.simulator)
+    if a.step == "shapes":
+        step_shapes(out, plan, a.simulator)
     if a.step in ("all", "run"):
         print("diagnosing (labels unread)")
         step_run(out, a.jobs)

@@ -25,6 +25,7 @@ from types import SimpleNamespace
 import numpy as np
 
 import indep_sim
+from blind_shapes import shape_shares
 
 
 class _Injector:
@@ -75,12 +76,14 @@ def make_indep_trial(kind, effect, seed, bench=None):
     if truth is not None:
         label.update(truth=truth, magnitude=dict(inject.magnitude),
                      pair=effect.split("|") if kind == "pair" else None)
-    if truth in bench.ORACLE_EFFECTS:
+    if truth is not None:
         _, clean_truth = indep_sim.simulate(seed=seed + 1, **kw)      # the same draws, no effect
         scene, clean = sim_truth["scene"], clean_truth["scene"]
-        label["oracle_snr"] = bench.oracle_snr(
-            SimpleNamespace(mag_full=scene.m), SimpleNamespace(mag_full=clean.m, ctx=clean, recording=rec),
-            SimpleNamespace(acc=clean.acc_true), SimpleNamespace(noise=clean.noise))
+        if truth in bench.ORACLE_EFFECTS:
+            label["oracle_snr"] = bench.oracle_snr(
+                SimpleNamespace(mag_full=scene.m), SimpleNamespace(mag_full=clean.m, ctx=clean, recording=rec),
+                SimpleNamespace(acc=clean.acc_true), SimpleNamespace(noise=clean.noise))
+        label["shape_share"] = shape_shares(rec.t, rec.aux, scene.m - clean.m)
     if label["magnitude"] and label["magnitude"].get("from_ctx"):
         label["magnitude"]["value"] = float(sim_truth["injected"][label["magnitude"].pop("from_ctx")])
     label["exclude"] = [truth] if kind == "removed" else []
