@@ -43,10 +43,10 @@ from dataclasses import dataclass, field
 from types import SimpleNamespace
 
 import numpy as np
-from scipy import stats
 
 from ..sim.effects import EFFECTS
 from . import gap
+from .catch_all import CATCH_ALL_CLOSE, LAG_ALPHA, SLOW_OFFSETS, CatchAllRules  # noqa: F401  (re-exported)
 from .engine import CATCH_ALL, Candidate, Engine, Evaluation
 from .forms import FORMS, MeanForm, implausible
 from .matched import NULL_LEVEL
@@ -55,13 +55,10 @@ from .model import block_normals, bootstrap_theta, fit_model
 MIN_STEP = 0.1
 MAX_EFFECTS = 3
 N_VERIFY = 3
-CATCH_ALL_CLOSE = 0.95          # ... or it closes nearly all of the gap
 PAY_CONFIDENCE = 0.9            # bootstrap confidence that an added effect lowers the gap
 TIE_FRACTION = 0.9              # candidates closing at least this fraction of the best one's step may tie
 STOCHASTIC_MARGIN = 0.15        # a catch-all stochastic effect must close this much more than the best
                                 # deterministic one
-LAG_ALPHA = 1e-3                # one-sided level of the gyroscope timing test above which a catch-all
-                                # is implausible (see Attribution.lag_reason)
 
 
 @dataclass
@@ -90,7 +87,7 @@ def _resample(rng, blocks, B, n):
     return out
 
 
-class Attribution:
+class Attribution(CatchAllRules):
     def __init__(self, eng: Engine, ev0: Evaluation, thr: float, library, n_boot=100, seed=0, screen_R=20, log=None,
                  matched=None):
         self.eng, self.ev0, self.thr = eng, ev0, thr
@@ -146,24 +143,6 @@ class Attribution:
                 self.bad.pop(name, None)
             self.log(f"    {name:24s} gap {ev.G:8.3f}  shrink {out[name][2]:+.2f}{'  (implausible)' if why else ''}")
         return out
-
-    def lag_reason(self, name):
-        """Why a catch-all cannot explain this recording, or None.
-
-        A random walk or coloured noise in the hard iron is independent of the motion, so it
-        cannot make the magnetometer's rotation lag the gyroscope's (:mod:`.gyro_timing`:
-        r = dB/dt + w x B regressed on dw/dt x B). A hysteresis or a latency does. When the
-        timing test reads the magnetometer late beyond chance (one-sided p < LAG_ALPHA), a
-        catch-all that widens the replicas until the gap closes is hiding that lag.
-        """
-        g = getattr(self.matched, "gyro", None)
-        if name not in CATCH_ALL or g is None or not g["t"] > 0:
-            return None
-        if float(stats.t.sf(g["t"], g["dof"])) >= LAG_ALPHA:
-            return None
-        return (f"the magnetometer lags the gyroscope by {g['delay_ms']:.2f} +- {g['se_ms']:.2f} ms "
-                f"(t {g['t']:.1f}), which a noise independent of the motion cannot produce: not taken as "
-                "the explanation (a hysteresis or a latency can lag)")
 
     def term_magnitude(self, ev, name):
         """Magnitude of a mean effect as fitted in ev (None for estimated effects)."""
@@ -239,9 +218,11 @@ class Attribution:
                 rs = self.screen(current, [n for n in remaining if n not in CATCH_ALL], self.screen_R)
                 scores = {n: rs[n][2] for n in rs}
 
+        selected, current, replaced = self._one_catch_all_for_slow_offsets(selected, current, results)
         for n in selected:
             results[n].selected, results[n].status = True, "selected"
         ambiguous = self._ambiguity(selected, results, singles, first_bad) if selected else []
+        ambiguous += [n for n in replaced if n not in ambiguous]
         for n in ambiguous:
             results[n].status = "ambiguous"
         if selected:
@@ -364,24 +345,6 @@ class Attribution:
             if s_sto >= s_det + STOCHASTIC_MARGIN and np.percentile(diff, 5) > 0:
                 return best_sto, full[best_sto]
         return best_det, full[best_det]
-
-    def _closes_all(self, ref, ev, r):
-        """A catch-all makes the replicas indistinguishable from the recording: its gap is at
-        the null level, it closes ``CATCH_ALL_CLOSE`` of the excess, or full closure lies inside
-        its shrink's 90% bootstrap interval (r.shrink_ci, set in the first round, the only one
-        catch-alls compete in). A fixed fraction alone would be a bar the resampling noise of a
-        short recording decides."""
-        if ev.G <= self.thr or gap.shrink(ref.G, ev.G) >= CATCH_ALL_CLOSE:
-            return True
-        return r.shrink_ci is not None and r.shrink_ci[1] >= 1.0
-
-    def _walk_like(self, ev):
-        """A coloured noise whose components all have correlation times longer than the
-        recording is a random walk over it: its increments grow linearly at every lag the
-        recording holds (the variogram of the blocks' apparent hard iron bends by less than
-        1 - e^-1 at the longest lag), so the one-parameter walk is the simpler equivalent."""
-        comps = [c for c in ev.cand.estimated.get("colored_noise", {}).get("components", ()) if c[0] > 0]
-        return bool(comps) and min(t for _, t in comps) >= self.eng.frame.duration
 
     def _step(self, full, name):
         return gap.shrink(self._round_ref.G, full[name].G)

@@ -14,7 +14,7 @@ import numpy as np
 
 from .base import Effect, Param, SimContext, vec
 from .form import EstimatedForm, MeanForm, diag, single_design, vec_magnitude
-from .noise_fit import block_offsets
+from .noise_fit import _noise_samples, _variogram_excess, block_offsets
 
 
 def _drift_forward(ctx: SimContext, vx, vy, vz):
@@ -77,7 +77,9 @@ def _walk_stat(env, bs, mult):
     return float(np.mean(d)), float(np.mean(gaps))
 
 
-def _walk_estimate(env, ctx, mult):
+def _walk_neighbours(env, ctx, mult):
+    """The walk from the mean squared change between neighbouring blocks' apparent hard iron,
+    when it exceeds the replicas' by 3 of their sd; else None."""
     D, gap = _walk_stat(env, ctx.real_bs, mult)
     Dr = np.array([_walk_stat(env, bs, mult)[0] for bs in ctx.rep_bs])
     Dr = Dr[np.isfinite(Dr)]
@@ -89,6 +91,36 @@ def _walk_estimate(env, ctx, mult):
     L = env.frame.duration / env.frame.n_blocks
     q2 = ex / (3.0 * (gap - 1.0 / 3.0) * L)           # per axis, unit^2/s (block means gap*L apart)
     return {"q": float(np.sqrt(q2) * 60.0)}           # unit/sqrt(h)
+
+
+def walk_from_variogram(k, excess, sd, L):
+    """q (unit/sqrt(h)) of a Wiener process fitted to the excess variogram of the blocks'
+    apparent hard iron at block lags k, or None when its longest lag is within 3 replica sd.
+
+    Means over blocks of length L of a Wiener process of intensity q^2 per axis, k blocks apart,
+    differ by E|o_(i+k) - o_i|^2 = 3 q^2 L (k - 1/3) over the three axes; q^2 is the weighted
+    least-squares slope through the origin (weights 1/sd^2)."""
+    k, excess, sd = (np.asarray(x, float) for x in (k, excess, sd))
+    if not (np.all(np.isfinite(excess)) and np.all(sd > 0) and excess[-1] > 3.0 * sd[-1]):
+        return None
+    x = 3.0 * L * (k - 1.0 / 3.0)
+    w = 1.0 / sd ** 2
+    q2 = float(np.sum(w * x * excess) / np.sum(w * x * x))
+    return float(np.sqrt(q2) * 60.0) if q2 > 0 else None
+
+
+def _walk_estimate(env, ctx, mult):
+    """The neighbouring blocks first; a slow walk shows little there and grows with the lag, so
+    when they do not see it, the variogram to 8 block lags the coloured-noise fit reads
+    (decision 0032)."""
+    est = _walk_neighbours(env, ctx, mult)
+    if est is not None:
+        return est
+    vgm = _variogram_excess(env, _noise_samples(env, ctx), mult)
+    if vgm is None:
+        return None
+    q = walk_from_variogram(*vgm, env.frame.duration / env.frame.n_blocks)
+    return None if q is None else {"q": q}
 
 
 def _walk_magnitude(env, p):
