@@ -510,6 +510,7 @@ def step_shapes(out, plan, simulator="ours"):
         if "shape_share" in label:
             labels[name]["shape_share"] = label["shape_share"]
             done += 1
+        print(f"  {name}: {len(label.get('shape_share') or {})} shares", flush=True)
     path.write_text(json.dumps(labels, indent=1))
     print(f"shape shares added to {done} of {len(labels)} labels in {path}")
 
