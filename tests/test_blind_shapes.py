@@ -101,6 +101,33 @@ def test_the_shape_separable_line_leaves_out_only_the_wrong_forms_that_share_the
     assert S["best_wrong_over_0.3_shape_confusable"] == 1                   # t0
 
 
+def test_named_first_is_split_by_whether_a_wrong_form_shares_the_truths_shape(tmp_path):
+    """t0: a drift that follows 0.6 of the step is named first, the step listed ambiguous: a
+    confusable trial, not named first but in the set. t1: named first, separable. t2: a drift
+    that follows 0.1 named first: a separable miss. t3: no shares, named first: in the line as
+    written only."""
+    (tmp_path / "sealed").mkdir()
+    (tmp_path / "results").mkdir()
+    single = {"kind": "single", "oracle_snr": 50.0, "magnitude": {"value": 1.0}, "truth": "hard_iron_step"}
+    far = {"hard_iron_step": 1.0, "hard_iron_drift": 0.1}
+    labels = {"t0": {**single, "shape_share": {"hard_iron_step": 1.0, "hard_iron_drift": 0.6}},
+              "t1": {**single, "shape_share": far}, "t2": {**single, "shape_share": far}, "t3": dict(single)}
+    step_first = _result("explained", ["hard_iron_step"], {"hard_iron_step": 1.0, "hard_iron_drift": 0.2})
+    drift_first = _result("explained", ["hard_iron_drift"], {"hard_iron_step": 0.9, "hard_iron_drift": 1.0})
+    results = {"t0": {**drift_first, "ambiguous_with": ["hard_iron_step"]}, "t1": step_first,
+               "t2": drift_first, "t3": step_first}
+    (tmp_path / "sealed" / "labels.json").write_text(json.dumps(labels))
+    for name, r in results.items():
+        (tmp_path / "results" / f"{name}.json").write_text(json.dumps(r))
+    S, _ = blind_benchmark.step_score(tmp_path)
+    assert S["named_first"] == 0.5                                          # t1, t3 of four
+    assert (S["shape_separable_trials"], S["shape_confusable_trials"]) == (2, 1)
+    assert S["named_first_shape_separable"] == 0.5                          # t1 of t1, t2
+    assert S["named_first_per_effect_shape_separable"] == {"hard_iron_step": 0.5}
+    assert S["named_first_shape_confusable"] == 0.0
+    assert S["named_first_or_ambiguous_shape_confusable"] == 1.0            # t0 lists the step
+
+
 def test_a_run_generated_without_shares_gets_them_back_only_if_its_recordings_regenerate(tmp_path):
     """--step shapes regenerates each trial from its seed: the same recording gets its shares; a
     recording that differs (a changed generator) stops the step and leaves the labels alone."""

@@ -22,7 +22,8 @@ Three separate steps, so the diagnoser never sees a label:
 
 ``--step shapes`` adds the shape shares to a run generated before labels carried them (each trial
 is regenerated from its seed and must match its recording on disk).
-``--subset ci`` runs the small fixed subset that CI runs (tests/test_diagnose_blind.py).
+``--subset ci`` runs a small fixed subset; tests/test_diagnose_blind.py runs four of its trials (the null
+and the removed step in CI, the single current and step with ``--runslow``).
 ``--simulator indep`` draws the trials from tools/indep_sim.py (a simulator written without
 :mod:`mkc_stream.sim`) with the same effects, magnitudes and forward models
 (tools/blind_indep.py adapts them); the default ``ours`` draws them from :mod:`mkc_stream.sim`.
@@ -585,6 +586,11 @@ def frac(flags):
     return float(np.mean(flags)) if len(flags) else None
 
 
+def named_first(row):
+    """The truth is the first effect the diagnosis selected."""
+    return bool(row["selected"]) and row["selected"][0] == row["truth"]
+
+
 def share_le(rows, key, limit=0.3):
     """Share of the rows whose ``key`` (a best-wrong shrink) is at most limit; rows without one
     (no wrong effect of that kind was scored) are left out."""
@@ -641,8 +647,7 @@ def step_score(out):
     single = [r for r in single_all if r["typical"]]
     below = [r for r in single_all if not r["typical"]]
     S["single_trials"], S["single_below_oracle"] = len(single_all), len(below)
-    S["named_first_all_magnitudes"] = frac([bool(r["selected"]) and r["selected"][0] == r["truth"]
-                                            for r in single_all])
+    S["named_first_all_magnitudes"] = frac([named_first(r) for r in single_all])
     S["below_oracle"] = {}
     for r in below:
         e = S["below_oracle"].setdefault(r["truth"], {"trials": 0, "detected": 0, "magnitudes": [],
@@ -657,12 +662,28 @@ def step_score(out):
             thr.setdefault(r["truth"], []).append(r["mag_true"] * ORACLE_SNR / r["oracle_snr"])
     S["oracle_threshold_median"] = {k: float(np.median(v)) for k, v in sorted(thr.items())}
     S["single_detected"] = float(np.mean([r["verdict"] != "no_gap" for r in single])) if single else None
-    S["named_first"] = frac([bool(r["selected"]) and r["selected"][0] == r["truth"] for r in single])
+    S["named_first"] = frac([named_first(r) for r in single])
     per = {}
     for r in single:
-        per.setdefault(r["truth"], []).append(bool(r["selected"]) and r["selected"][0] == r["truth"])
+        per.setdefault(r["truth"], []).append(named_first(r))
     S["named_first_per_effect"] = {k: float(np.mean(v)) for k, v in sorted(per.items())}
     S["named_first_or_ambiguous"] = frac([r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in single])
+    # the same lines split by the shapes (docs/decisions/0033): on the trials where no wrong
+    # slow-offset form follows SHAPE_CONFUSABLE of the truth's noise-free change, the recording
+    # holds what ranks the truth first; on the others it may not, and the report can only list
+    # the truth among the forms it cannot rank (runs generated without the shares are left out)
+    shaped = [r for r in single if "shape_share" in labels[r["trial"]]]
+    separable = [r for r in shaped if not r["wrong_shape_confusable"]]
+    confusable = [r for r in shaped if r["wrong_shape_confusable"]]
+    S["shape_separable_trials"], S["shape_confusable_trials"] = len(separable), len(confusable)
+    S["named_first_shape_separable"] = frac([named_first(r) for r in separable])
+    per_sep = {}
+    for r in separable:
+        per_sep.setdefault(r["truth"], []).append(named_first(r))
+    S["named_first_per_effect_shape_separable"] = {k: float(np.mean(v)) for k, v in sorted(per_sep.items())}
+    S["named_first_shape_confusable"] = frac([named_first(r) for r in confusable])
+    S["named_first_or_ambiguous_shape_confusable"] = frac(
+        [r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in confusable])
     det = [r for r in single if r["verdict"] != "no_gap"]
     sh = [r.get("shrink_truth") for r in det]
     S["shrink_correct_ge_0.7"] = float(np.mean([s is not None and s >= 0.7 for s in sh])) if det else None
