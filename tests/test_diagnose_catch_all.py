@@ -12,6 +12,8 @@ gyroscope. A hysteresis does, and coloured noise closing a hysteresis's gap was 
 """
 from types import SimpleNamespace
 
+import pytest
+
 from mkc_stream.diagnose import diagnose
 from mkc_stream.diagnose.attribution import CATCH_ALL_CLOSE, Attribution
 from mkc_stream.diagnose.gap import shrink
@@ -89,6 +91,9 @@ def test_a_simulated_hysteresis_keeps_the_catch_alls_out():
     d = diagnose(rec, replicas=12)
     r = {e.name: e for e in d.effects}
     assert d.selected[:1] == ["hysteresis"]
+    # the play form (decision 0034) closes the loop's whole gap (1.01 measured) and sizes it (0.134)
+    assert d.verdict == "explained" and r["hysteresis"].shrink >= 0.9
+    assert r["hysteresis"].magnitude["value"] == pytest.approx(0.15, rel=0.2)
     for name in ("colored_noise", "bias_random_walk"):
         assert r[name].status == "implausible" and "lags the gyroscope" in r[name].reason, (name, r[name].status)
         assert name not in d.ambiguous_with

@@ -1,12 +1,11 @@
 """A form's limit (MeanForm.limit): hysteresis is not claimed for a lag that grows with the rate.
 
-A hysteresis loop's width does not depend on how fast the field moves; the hysteresis form's tanh
-at a large rate setting is linear in the rate, which is a latency. When a latency is in the data
+A hysteresis loop's width does not depend on how fast the field moves; the hysteresis form's
+limit, a lag in proportion to the field's rate, is a latency. When a latency is in the data
 and the latency form is not in the library (the blind benchmark's "removed" trials), the hysteresis
 form closed its whole gap and was claimed ("explained", wrong). The limit comparison must say
 "lag" for a latency and stay quiet for a loop.
 """
-import numpy as np
 import pytest
 
 from mkc_stream.diagnose.baseline import fit_baseline
@@ -41,10 +40,9 @@ def test_a_latency_is_a_lag_not_a_hysteresis_loop(seed):
 
 @pytest.mark.parametrize("seed", [3, 11])
 def test_a_hysteresis_loop_is_not_taken_for_a_lag(seed):
-    # rate 1 uT/s: the loop is fully open at any rate the hand-held motion reaches (a play loop)
-    design, excess, why = _hysteresis_choice([("hysteresis", {"width": 0.2, "rate": 1.0})], seed)
+    design, excess, why = _hysteresis_choice([("hysteresis", {"width": 0.2})], seed)
     assert why is None and excess < -LIMIT_MARGIN
-    assert np.isfinite(design["k"]) and design["k"] <= 1.0
+    assert "w" in design                                  # a loop width, not the lag
 
 
 def test_without_a_lag_or_a_loop_the_limit_says_nothing():

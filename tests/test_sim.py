@@ -100,10 +100,15 @@ def test_nonlinear_family_magnitudes():
     assert np.sqrt(np.mean(np.sum(d * d, axis=1))) == pytest.approx(0.3, rel=0.02)   # RMS over directions at 50 uT
     t = np.arange(2000) / 50.0
     B = np.stack([50 * np.sin(2 * np.pi * t / 4), np.zeros_like(t), np.zeros_like(t)], 1)
-    _, d, _ = added("hysteresis", {"width": 0.2, "rate": 1.0}, B=B)
-    rising = np.gradient(B[:, 0]) > 0.5
+    _, d, _ = added("hysteresis", {"width": 0.2}, B=B)
+    rising = (np.gradient(B[:, 0]) > 0.5) & (t > 0.1)          # the loop starts closed at the first sample
     falling = np.gradient(B[:, 0]) < -0.5
-    assert np.allclose(d[rising, 0], -0.2, atol=0.01) and np.allclose(d[falling, 0], 0.2, atol=0.01)
+    assert np.allclose(d[rising, 0], -0.2, atol=1e-9) and np.allclose(d[falling, 0], 0.2, atol=1e-9)
+    turning = np.flatnonzero(np.diff(np.sign(np.diff(B[:, 0]))) < 0)[0] + 1     # the first maximum
+    assert np.allclose(d[turning:turning + 4, 0], -0.2 - (B[turning:turning + 4, 0] - B[turning, 0]))
+    # rate-independent: the same field values traversed twice as slowly give the same loop
+    _, d_slow, _ = added("hysteresis", {"width": 0.2}, B=B, rate=25.0)
+    assert np.array_equal(d_slow, d)
 
 
 def test_alignment_effects_rotate_the_sensed_field():

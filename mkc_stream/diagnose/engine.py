@@ -28,9 +28,10 @@ REFINE_REPLICAS = 16
 REFINE_PASSES = 2
 #: chi-square by which a form's limit (another effect) must beat its best design for the effect not
 #: to be claimed: a likelihood ratio of e^12.5 were the residuals white; their autocorrelation
-#: inflates chi-square differences, hence the wide margin. On the independent simulator's blind
-#: trials a 5-14 ms latency beats the best hysteresis loop width by 46-240, and a play-operator
-#: loop prefers a loop width by 251-3,865; with no effect the limit is 2-7 ahead (decision 0025)
+#: inflates chi-square differences, hence the wide margin. Hand-held, 150 s at 20 Hz (the unit
+#: tests), the loop widths of the play form (decision 0034): a 12 ms latency prefers the limit by
+#: 228-270, a 5 ms one by 59-72; a 0.2 uT loop a loop width by 2,901-3,306, a 0.05 uT one by
+#: 179-225; with no effect the limit is 4-7 ahead (the rate-based form's figures: decision 0025)
 LIMIT_MARGIN = 25.0
 
 

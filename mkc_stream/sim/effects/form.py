@@ -4,7 +4,7 @@ Mean effects (a deterministic change of the raw signal) are linear in their para
 the nonlinear settings are fixed: dm = G(t) theta. G comes from the forward model's
 derivative with respect to its parameters (e.g. temperature_offset: I_3 (T_lag(t) - mean);
 temperature_scale: diag(m - b) (T_lag - mean); hard_iron_step: I_3 [t >= t0]); settings that
-are not linear (thermal lag tau, step time t0, hysteresis rate) are found by a grid search on
+are not linear (thermal lag tau, step time t0, hysteresis loop width) are found by a grid search on
 training blocks. Each design returns its G as a function of (frame, m, state) so that the
 Gauss-Newton fit can re-evaluate it at the current hard iron.
 
