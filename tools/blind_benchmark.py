@@ -591,6 +591,19 @@ def named_first(row):
     return bool(row["selected"]) and row["selected"][0] == row["truth"]
 
 
+def named_first_or_ambiguous(row):
+    """The truth is selected first or listed among the effects the diagnosis cannot rank."""
+    return row["truth"] in (row["selected"][:1] + row["ambiguous"])
+
+
+def named_first_per_effect(rows):
+    """{truth: share of its rows named first}."""
+    per = {}
+    for r in rows:
+        per.setdefault(r["truth"], []).append(named_first(r))
+    return {k: float(np.mean(v)) for k, v in sorted(per.items())}
+
+
 def share_le(rows, key, limit=0.3):
     """Share of the rows whose ``key`` (a best-wrong shrink) is at most limit; rows without one
     (no wrong effect of that kind was scored) are left out."""
@@ -663,11 +676,8 @@ def step_score(out):
     S["oracle_threshold_median"] = {k: float(np.median(v)) for k, v in sorted(thr.items())}
     S["single_detected"] = float(np.mean([r["verdict"] != "no_gap" for r in single])) if single else None
     S["named_first"] = frac([named_first(r) for r in single])
-    per = {}
-    for r in single:
-        per.setdefault(r["truth"], []).append(named_first(r))
-    S["named_first_per_effect"] = {k: float(np.mean(v)) for k, v in sorted(per.items())}
-    S["named_first_or_ambiguous"] = frac([r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in single])
+    S["named_first_per_effect"] = named_first_per_effect(single)
+    S["named_first_or_ambiguous"] = frac([named_first_or_ambiguous(r) for r in single])
     # the same lines split by the shapes (docs/decisions/0033): on the trials where no wrong
     # slow-offset form follows SHAPE_CONFUSABLE of the truth's noise-free change, the recording
     # holds what ranks the truth first; on the others it may not, and the report can only list
@@ -677,13 +687,9 @@ def step_score(out):
     confusable = [r for r in shaped if r["wrong_shape_confusable"]]
     S["shape_separable_trials"], S["shape_confusable_trials"] = len(separable), len(confusable)
     S["named_first_shape_separable"] = frac([named_first(r) for r in separable])
-    per_sep = {}
-    for r in separable:
-        per_sep.setdefault(r["truth"], []).append(named_first(r))
-    S["named_first_per_effect_shape_separable"] = {k: float(np.mean(v)) for k, v in sorted(per_sep.items())}
+    S["named_first_per_effect_shape_separable"] = named_first_per_effect(separable)
     S["named_first_shape_confusable"] = frac([named_first(r) for r in confusable])
-    S["named_first_or_ambiguous_shape_confusable"] = frac(
-        [r["truth"] in (r["selected"][:1] + r["ambiguous"]) for r in confusable])
+    S["named_first_or_ambiguous_shape_confusable"] = frac([named_first_or_ambiguous(r) for r in confusable])
     det = [r for r in single if r["verdict"] != "no_gap"]
     sh = [r.get("shrink_truth") for r in det]
     S["shrink_correct_ge_0.7"] = float(np.mean([s is not None and s >= 0.7 for s in sh])) if det else None
