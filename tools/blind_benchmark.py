@@ -20,6 +20,8 @@ Three separate steps, so the diagnoser never sees a label:
 3. ``score``: only now the labels are read; the acceptance figures are printed and written to
    ``OUT/score.json``.
 
+``--step pool --runs DIR1 DIR2 ... --out OUT`` scores several runs as one (``OUT/pooled_score.json``):
+a 90-trial plan has about 3 trials per effect, too few for a per-effect line.
 ``--step shapes`` adds the shape shares to a run generated before labels carried them (each trial
 is regenerated from its seed and must match its recording on disk).
 ``--subset ci`` runs a small fixed subset; tests/test_diagnose_blind.py runs four of its trials (the null
@@ -28,7 +30,7 @@ and the removed step in CI, the single current and step with ``--runslow``).
 :mod:`mkc_stream.sim`) with the same effects, magnitudes and forward models
 (tools/blind_indep.py adapts them); the default ``ours`` draws them from :mod:`mkc_stream.sim`.
 
-Size: about 740 lines; generation, the oracle and scoring share the trial's conventions (effect
+Size: about 800 lines; generation, the oracle and scoring share the trial's conventions (effect
 list, ranges, forward models, what counts as a miss), which one file keeps in step.
 """
 from __future__ import annotations
@@ -612,6 +614,32 @@ def share_le(rows, key, limit=0.3):
 
 
 def step_score(out):
+    """Score one run: (summary, rows), also written to ``OUT/score.json``."""
+    rows = score_rows(out)
+    S = summarise(rows)
+    (out / "score.json").write_text(json.dumps({"summary": S, "rows": rows}, indent=1))
+    return S, rows
+
+
+def step_pool(runs, out):
+    """Score several runs as one (plans of either simulator, other seeds): (summary, rows), also
+    written to ``OUT/pooled_score.json``. A plan of 90 trials holds 3 or so trials per effect and
+    7-10 pairs and removed effects, where one trial moves a line by 10-33 points; pooled, the lines
+    rest on enough trials (``summary["counts"]`` says how many). Each row's trial name is prefixed
+    with its run's directory name."""
+    rows = []
+    for run in runs:
+        run = pathlib.Path(run)
+        rows += [{**r, "trial": f"{run.name}/{r['trial']}"} for r in score_rows(run)]
+    S = summarise(rows)
+    S["runs"] = [str(r) for r in runs]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "pooled_score.json").write_text(json.dumps({"summary": S, "rows": rows}, indent=1))
+    return S, rows
+
+
+def score_rows(out):
+    """One row per trial of a run: its label and its diagnosis side by side (labels read here)."""
     labels = json.loads((out / "sealed" / "labels.json").read_text())
     rows = []
     for name, lab in sorted(labels.items()):
@@ -619,7 +647,8 @@ def step_score(out):
         eff = {e["name"]: e for e in r["effects"]}
         truth = lab["truth"]
         row = {"trial": name, "kind": lab["kind"], "truth": truth, "verdict": r["verdict"],
-               "selected": r["selected"], "ambiguous": r["ambiguous_with"], "seconds": r["seconds"]}
+               "selected": r["selected"], "ambiguous": r["ambiguous_with"], "seconds": r["seconds"],
+               "has_shape_share": "shape_share" in lab}
         snr = lab.get("oracle_snr")
         row["oracle_snr"] = snr
         row["typical"] = snr is None or snr >= ORACLE_SNR
@@ -651,6 +680,11 @@ def step_score(out):
              and shares.get(e["name"], 0.0) < SHAPE_CONFUSABLE], default=None)
         row["best_wrong_given"] = max([e.get("shrink_given_selected") or 0.0 for e in wrong], default=None)
         rows.append(row)
+    return rows
+
+
+def summarise(rows):
+    """The acceptance figures over rows of :func:`score_rows` (one run's, or several pooled)."""
     S = {}
     none = [r for r in rows if r["kind"] == "none"]
     S["false_alarm_rate"] = float(np.mean([r["verdict"] != "no_gap" for r in none])) if none else None
@@ -682,7 +716,7 @@ def step_score(out):
     # slow-offset form follows SHAPE_CONFUSABLE of the truth's noise-free change, the recording
     # holds what ranks the truth first; on the others it may not, and the report can only list
     # the truth among the forms it cannot rank (runs generated without the shares are left out)
-    shaped = [r for r in single if "shape_share" in labels[r["trial"]]]
+    shaped = [r for r in single if r["has_shape_share"]]
     separable = [r for r in shaped if not r["wrong_shape_confusable"]]
     confusable = [r for r in shaped if r["wrong_shape_confusable"]]
     S["shape_separable_trials"], S["shape_confusable_trials"] = len(separable), len(confusable)
@@ -710,7 +744,7 @@ def step_score(out):
     # the failures of the line outside the declared pair whose wrong effect shares the truth's shape
     S["best_wrong_over_0.3_shape_confusable"] = sum(
         1 for r in det if (r["best_wrong_unpaired_det"] or 0.0) > 0.3
-        and (r["best_wrong_shape_separable_det"] or 0.0) <= 0.3 and "shape_share" in labels[r["trial"]])
+        and (r["best_wrong_shape_separable_det"] or 0.0) <= 0.3 and r["has_shape_share"])
     S["best_wrong_given_selected_le_0.3"] = share_le(det, "best_wrong_given")
     pairs = [r for r in rows if r["kind"] == "pair" and r["typical"]]
     S["pair_truth_in_set"] = frac([r["truth"] in r["selected"] + r["ambiguous"] for r in pairs])
@@ -729,8 +763,14 @@ def step_score(out):
     secs = [r["seconds"] for r in rows]
     S["seconds_median"], S["seconds_max"] = float(np.median(secs)), float(np.max(secs))
     S["trials"] = len(rows)
-    (out / "score.json").write_text(json.dumps({"summary": S, "rows": rows}, indent=1))
-    return S, rows
+    # how many trials each line rests on (typical ones; a share of 3 trials is not one of 30)
+    per_effect = {}
+    for r in single:
+        per_effect[r["truth"]] = per_effect.get(r["truth"], 0) + 1
+    S["counts"] = {"none": len(none), "single_typical": len(single), "single_detected": len(det),
+                   "shape_separable": len(separable), "pairs": len(pairs), "removed": len(rem),
+                   "single_typical_per_effect": dict(sorted(per_effect.items()))}
+    return S
 
 
 def main(argv=None):
@@ -740,14 +780,25 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--subset", choices=("ci",), help="the fixed small subset CI runs")
-    ap.add_argument("--step", choices=("all", "generate", "run", "score", "shapes"), default="all",
-                    help="shapes: add the shape shares to the labels of a run generated without them")
+    ap.add_argument("--step", choices=("all", "generate", "run", "score", "shapes", "pool"), default="all",
+                    help="shapes: add the shape shares to the labels of a run generated without them; "
+                         "pool: score the --runs as one, into OUT/pooled_score.json")
+    ap.add_argument("--runs", nargs="+", metavar="DIR", help="with --step pool: the run directories to pool")
     ap.add_argument("--only", help="comma-separated effect names (and/or 'none'): only the plan's trials with them")
     ap.add_argument("--simulator", choices=("ours", "indep"), default="ours",
                     help="draw the trials from mkc_stream.sim (ours) or tools/indep_sim.py (indep)")
     ap.add_argument("--index", help="only these plan positions, e.g. 0,5,20-24 (names keep the position)")
     a = ap.parse_args(argv)
     out = pathlib.Path(a.out)
+    if a.step == "pool":
+        if not a.runs:
+            ap.error("--step pool needs --runs DIR [DIR ...]")
+        missing = [d for d in a.runs if not (pathlib.Path(d) / "sealed" / "labels.json").is_file()]
+        if missing:
+            ap.error(f"not a scored or scorable run (no sealed/labels.json): {', '.join(missing)}")
+        S, _ = step_pool(a.runs, out)
+        print(json.dumps(S, indent=1))
+        return
     plan = [(k, e, 7919 * (i + 1)) for i, (k, e) in enumerate(CI_SUBSET)] if a.subset else trial_plan(a.trials, a.seed)
     if a.only or a.index:
         plan = select(plan, a.only, a.index)
