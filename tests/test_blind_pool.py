@@ -69,3 +69,7 @@ def test_pool_from_the_command_line_and_its_errors(two_runs, tmp_path, capsys):
     with pytest.raises(SystemExit):
         blind_benchmark.main(["--step", "pool", "--runs", str(a), str(tmp_path / "nothing"), "--out", str(tmp_path / "p")])
     assert "no sealed/labels.json" in capsys.readouterr().err
+    (b / "results" / "t1.json").unlink()                  # a run whose diagnosis did not finish
+    with pytest.raises(SystemExit):
+        blind_benchmark.main(["--step", "pool", "--runs", str(a), str(b), "--out", str(tmp_path / "p")])
+    assert "trial t1 has no result" in capsys.readouterr().err

@@ -30,7 +30,7 @@ and the removed step in CI, the single current and step with ``--runslow``).
 :mod:`mkc_stream.sim`) with the same effects, magnitudes and forward models
 (tools/blind_indep.py adapts them); the default ``ours`` draws them from :mod:`mkc_stream.sim`.
 
-Size: about 800 lines; generation, the oracle and scoring share the trial's conventions (effect
+Size: about 830 lines; generation, the oracle and scoring share the trial's conventions (effect
 list, ranges, forward models, what counts as a miss), which one file keeps in step.
 """
 from __future__ import annotations
@@ -643,7 +643,10 @@ def score_rows(out):
     labels = json.loads((out / "sealed" / "labels.json").read_text())
     rows = []
     for name, lab in sorted(labels.items()):
-        r = json.loads((out / "results" / f"{name}.json").read_text())
+        path = out / "results" / f"{name}.json"
+        if not path.is_file():
+            raise ValueError(f"{out}: trial {name} has no result (its diagnosis has not run: --step run)")
+        r = json.loads(path.read_text())
         eff = {e["name"]: e for e in r["effects"]}
         truth = lab["truth"]
         row = {"trial": name, "kind": lab["kind"], "truth": truth, "verdict": r["verdict"],
@@ -796,7 +799,10 @@ def main(argv=None):
         missing = [d for d in a.runs if not (pathlib.Path(d) / "sealed" / "labels.json").is_file()]
         if missing:
             ap.error(f"not a scored or scorable run (no sealed/labels.json): {', '.join(missing)}")
-        S, _ = step_pool(a.runs, out)
+        try:
+            S, _ = step_pool(a.runs, out)
+        except ValueError as e:
+            ap.error(str(e))
         print(json.dumps(S, indent=1))
         return
     plan = [(k, e, 7919 * (i + 1)) for i, (k, e) in enumerate(CI_SUBSET)] if a.subset else trial_plan(a.trials, a.seed)
